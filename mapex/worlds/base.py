@@ -1,0 +1,38 @@
+"""The ground-truth world every other module explores."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapex.grid import RESOLUTION_M
+
+
+class WorldError(ValueError):
+    """A world that cannot be loaded or generated; the message is one line naming the cause."""
+
+
+@dataclass(frozen=True)
+class World:
+    """A floor plan at 0.1 m per cell.
+
+    occupancy: bool (rows, cols), True = wall.
+    valid_space: bool (rows, cols), True = inside a room of the building (SPEC §1).
+    """
+
+    name: str
+    occupancy: np.ndarray
+    valid_space: np.ndarray
+    resolution_m: float = RESOLUTION_M
+
+    def __post_init__(self) -> None:
+        if self.occupancy.shape != self.valid_space.shape or self.occupancy.ndim != 2:
+            raise WorldError(
+                f"world '{self.name}': occupancy {self.occupancy.shape} and valid space "
+                f"{self.valid_space.shape} must be 2-D maps of the same shape"
+            )
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.occupancy.shape  # type: ignore[return-value]
