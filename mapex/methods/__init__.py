@@ -1,0 +1,50 @@
+"""The eight exploration methods of SPEC §5, selectable by name."""
+
+from __future__ import annotations
+
+from mapex.config import ExplorationConfig
+from mapex.methods.base import FrontierScorer, Method, PlanningContext
+from mapex.methods.ig_hector import IgHector
+from mapex.methods.information_gain import (
+    Deterministic,
+    MapEx,
+    NoVariance,
+    NoVisibility,
+    ObservedMap,
+)
+from mapex.methods.nearest import NearestFrontier
+from mapex.methods.upen import Upen
+
+METHODS: dict[str, type[Method]] = {
+    cls.name: cls
+    for cls in (
+        NearestFrontier,
+        MapEx,
+        Deterministic,
+        NoVariance,
+        ObservedMap,
+        NoVisibility,
+        IgHector,
+        Upen,
+    )
+}
+MAIN_COMPARISON = ("nearest", "upen", "ig_hector", "mapex")
+ABLATIONS = ("deterministic", "no_variance", "observed_map", "no_visibility")
+
+
+def make_method(name: str, config: ExplorationConfig) -> Method:
+    """Instantiate the method called `name` (ValueError with the choices otherwise)."""
+    if name not in METHODS:
+        raise ValueError(f"unknown method '{name}' (choose from: {', '.join(METHODS)})")
+    return METHODS[name](config)
+
+
+__all__ = [
+    "ABLATIONS",
+    "MAIN_COMPARISON",
+    "METHODS",
+    "FrontierScorer",
+    "Method",
+    "PlanningContext",
+    "make_method",
+]

@@ -1,0 +1,114 @@
+"""`python -m mapex`: run exploration episodes from the command line."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
+
+from mapex.config import ConfigError, ExplorationConfig, apply_overrides
+from mapex.methods import METHODS
+from mapex.prediction import PREDICTORS, make_predictor
+from mapex.worlds import DEFAULT_WORLD, WorldError, load_world
+
+DEFAULT_RESULTS_DIR = Path("results")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m mapex",
+        description="MapEx exploration simulator (in-process). See README.md for the methods.",
+    )
+    commands = parser.add_subparsers(dest="command", required=True)
+    run = commands.add_parser(
+        "run",
+        help="run one exploration episode and write its results folder",
+        description="Explore a world with one method for a number of steps; writes metrics.json, "
+        "curves.csv, trajectory.csv and final.png to the results folder.",
+    )
+    run.add_argument(
+        "--world",
+        default=DEFAULT_WORLD,
+        help=f"a KTH map directory (occ_map.npy + valid_space.npy), 'generated:SEED' or "
+        f"'default' (= {DEFAULT_WORLD}); default: %(default)s",
+    )
+    run.add_argument(
+        "--method", default="mapex", choices=sorted(METHODS), help="default: %(default)s"
+    )
+    run.add_argument(
+        "--predictor",
+        default="classical",
+        choices=sorted(PREDICTORS),
+        help="map predictor ensemble (also used for the IoU/TU metrics); default: %(default)s",
+    )
+    run.add_argument("--steps", type=int, default=1000, help="time budget T; default: %(default)s")
+    run.add_argument(
+        "--start", type=int, default=0, choices=range(4), help="start pose (corner 0-3); default: 0"
+    )
+    run.add_argument("--seed", type=int, default=0, help="random seed (UPEN's RRT); default: 0")
+    run.add_argument(
+        "--out", type=Path, default=None, help="results folder; default: results/<run name>"
+    )
+    run.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help="override a configuration field, e.g. visibility.stop_rule=accumulate (repeatable)",
+    )
+    run.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    return parser
+
+
+def run_command(args: argparse.Namespace) -> int:
+    from mapex.episode import run_episode
+    from mapex.results import run_name, write_results
+
+    if args.steps < 1:
+        raise ConfigError(f"--steps must be at least 1 (got {args.steps})")
+    config = apply_overrides(ExplorationConfig(steps=args.steps), args.overrides)
+    world = load_world(args.world)
+    predictor = make_predictor(args.predictor)
+    with tqdm(
+        total=config.steps,
+        desc=f"{args.method} on {world.name}",
+        unit="step",
+        disable=args.no_progress,
+        file=sys.stderr,
+    ) as bar:
+        result = run_episode(
+            world,
+            args.method,
+            predictor,
+            args.start,
+            args.seed,
+            config,
+            on_step=lambda t: bar.update(t - bar.n),
+        )
+    out_dir = args.out or DEFAULT_RESULTS_DIR / run_name(result)
+    write_results(result, world, out_dir)
+    auc = result.curves.auc()
+    ended = (
+        f", no frontier left at step {result.finished_at}" if result.finished_at is not None else ""
+    )
+    print(
+        f"{result.method} on {result.world} (start {result.start_index}): coverage AUC "
+        f"{auc['coverage']:.3f}, IoU AUC {auc['iou']:.3f}, TU AUC {auc['tu']:.3f}, "
+        f"final coverage {result.curves.coverage[-1]:.3f}{ended} -> {out_dir}"
+    )
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return run_command(args)
+    except (WorldError, ConfigError, OSError) as error:
+        print(f"mapex: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("mapex: interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,144 @@
+"""The robot brain: mapping, goal keeping and re-planning with one method (SPEC §2-3).
+
+The explorer owns the observed map O_t. Each timestep it keeps its goal while
+the goal is still worth going to (SPEC §3), otherwise it re-plans: predicts the
+map (methods that use prediction), extracts frontiers, lets the method pick a
+goal and plans an A* path to it. It then hands back the cells to drive through
+this step. It knows nothing of processes: `services.planner` wraps it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mapex.config import ExplorationConfig
+from mapex.frontiers import extract_frontiers
+from mapex.grid import Cell, new_observed_map
+from mapex.methods.base import Method, PlanningContext
+from mapex.navigation import (
+    advance_along_path,
+    cost_map,
+    path_is_clear,
+    plan_path,
+    reachable_mask,
+    unknown_within,
+)
+from mapex.prediction.base import EnsemblePrediction, Predictor, known_region
+from mapex.sensor import Scan, integrate_scan
+
+
+@dataclass
+class ExplorerStats:
+    """Counters kept for the run record."""
+
+    replans: int = 0
+    path_repairs: int = 0
+    goals: list[tuple[int, int, int]] = field(default_factory=list)  # (t, row, col)
+
+
+class Explorer:
+    """Observed map + goal state machine for one robot."""
+
+    def __init__(
+        self,
+        shape: tuple[int, int],
+        method: Method,
+        predictor: Predictor | None,
+        config: ExplorationConfig,
+        seed: int,
+    ) -> None:
+        if method.uses_prediction and predictor is None:
+            raise ValueError(f"method '{method.name}' needs a predictor")
+        self.method = method
+        self.predictor = predictor
+        self.config = config
+        self.rng = np.random.default_rng(seed)
+        self.observed = new_observed_map(shape)
+        self.pose = np.zeros(2, dtype=np.int64)
+        self.goal: np.ndarray | None = None
+        self.path: np.ndarray | None = None
+        self.prediction: EnsemblePrediction | None = None
+        self.frontiers = np.zeros((0, 2), dtype=np.int64)
+        self.steps_since_plan = 0
+        self.moved_since_goal = False
+        self.stats = ExplorerStats()
+
+    def observe(self, scan: Scan) -> None:
+        """Integrate a LiDAR scan into O_t; the scan's pose is the robot's pose."""
+        integrate_scan(self.observed, scan, self.config.sensor)
+        self.pose = np.asarray(scan.pose, dtype=np.int64)
+
+    def next_motion(self, t: int) -> np.ndarray | None:
+        """The cells (k, 2) to drive through at step `t`, or None when exploration is over."""
+        if self.goal is not None and self._goal_done():
+            self.goal = self.path = None
+        if self.goal is not None and not path_is_clear(
+            self.observed, self.path, self.config.navigation
+        ):
+            self._repair_path()
+        if self.goal is None:
+            self._replan(t)
+        if self.goal is None:
+            return None
+        moved, self.path = advance_along_path(self.path, self.config.motion.cells_per_step)
+        self.steps_since_plan += 1
+        self.moved_since_goal = self.moved_since_goal or len(moved) > 0
+        return moved
+
+    def _goal_done(self) -> bool:
+        nav = self.config.navigation
+        distance = float(np.hypot(*(self.goal - self.pose)))
+        reached = self.moved_since_goal and distance <= nav.goal_reached_cells
+        if reached or len(self.path) <= 1:
+            return True
+        period = self.method.replan_every_steps
+        if period is not None and self.steps_since_plan >= period:
+            return True
+        if self.method.drop_goal_without_unknown:
+            return not unknown_within(self.observed, self.goal, nav.goal_unknown_radius_cells)
+        return False
+
+    def _repair_path(self) -> None:
+        """New walls block the path: plan again to the same goal, or drop it if unreachable."""
+        self.stats.path_repairs += 1
+        cost = cost_map(self.observed, self.config.navigation)
+        self.path = plan_path(self.observed, cost, self._cell(self.pose), self._cell(self.goal))
+        if self.path is None:
+            self.goal = None
+
+    def _replan(self, t: int) -> None:
+        self.stats.replans += 1
+        self.prediction = self.predict() if self.method.uses_prediction else None
+        self.frontiers = extract_frontiers(self.observed, self.config.frontier)
+        cost = cost_map(self.observed, self.config.navigation)
+        context = PlanningContext(
+            observed=self.observed,
+            pose=self.pose,
+            frontiers=self.frontiers,
+            prediction=self.prediction,
+            cost=cost,
+            reachable=reachable_mask(cost, self._cell(self.pose)),
+            config=self.config,
+            rng=self.rng,
+        )
+        goal = self.method.select_goal(context)
+        if goal is None:
+            return
+        path = plan_path(self.observed, cost, self._cell(self.pose), self._cell(goal))
+        if path is None:
+            return
+        self.goal, self.path = np.asarray(goal, dtype=np.int64), path
+        self.steps_since_plan = 0
+        self.moved_since_goal = False
+        self.stats.goals.append((t, int(goal[0]), int(goal[1])))
+
+    def predict(self) -> EnsemblePrediction:
+        """The ensemble on the region that matters: known area plus sensor range."""
+        region = known_region(self.observed, self.config.sensor.range_cells)
+        return self.predictor.predict(self.observed, region)
+
+    @staticmethod
+    def _cell(cell: np.ndarray) -> Cell:
+        return (int(cell[0]), int(cell[1]))

@@ -1,0 +1,88 @@
+"""The common interface of every exploration method (SPEC §5).
+
+All methods share the exploration loop and differ only in how they pick the
+next goal. Most score frontiers (`FrontierScorer`: higher is better, the best
+*reachable* frontier wins); UPEN picks a goal of its own (`Method`).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapex.config import ExplorationConfig
+from mapex.grid import FREE, UNKNOWN
+from mapex.prediction.base import EnsemblePrediction
+
+
+@dataclass(frozen=True)
+class PlanningContext:
+    """Everything a method may look at when the planner re-plans.
+
+    observed: uint8 observed map O_t; pose: robot cell (row, col);
+    frontiers: int (K, 2) frontier points; prediction: the ensemble (None for
+    methods that use none); cost: float32 planning cost map (inf = blocked);
+    reachable: bool map of cells the robot can drive to.
+    """
+
+    observed: np.ndarray
+    pose: np.ndarray
+    frontiers: np.ndarray
+    prediction: EnsemblePrediction | None
+    cost: np.ndarray
+    reachable: np.ndarray
+    config: ExplorationConfig
+    rng: np.random.Generator
+
+    def frontier_distances(self) -> np.ndarray:
+        """Euclidean distance in cells from the robot to each frontier, at least 1."""
+        offsets = self.frontiers.astype(np.float64) - self.pose.astype(np.float64)
+        return np.maximum(np.hypot(offsets[:, 0], offsets[:, 1]), 1.0)
+
+    def unknown_weights(self, values: np.ndarray | float) -> np.ndarray:
+        """float32 map: `values` on unknown cells, 0 on known ones (the visible set excludes them)."""
+        unknown = self.observed == UNKNOWN
+        return np.where(unknown, values, 0).astype(np.float32)
+
+    def can_reach(self, cell: np.ndarray) -> bool:
+        """A known-free cell the robot can drive to (itself, or next to a reachable cell)."""
+        row, col = int(cell[0]), int(cell[1])
+        if self.observed[row, col] != FREE:
+            return False
+        window = self.reachable[max(row - 1, 0) : row + 2, max(col - 1, 0) : col + 2]
+        return bool(window.any())
+
+
+class Method(ABC):
+    """A goal selector. `select_goal` returns a reachable known-free cell, or None when done."""
+
+    name: str = ""
+    uses_prediction: bool = False
+    replan_every_steps: int | None = None  # re-plan periodically even if the goal is kept
+    drop_goal_without_unknown: bool = True  # SPEC §3 goal rule; UPEN's goals are not frontiers
+
+    def __init__(self, config: ExplorationConfig) -> None:
+        self.config = config
+
+    @abstractmethod
+    def select_goal(self, context: PlanningContext) -> np.ndarray | None:
+        """The next goal cell, or None when there is nothing left to explore."""
+
+
+class FrontierScorer(Method):
+    """A method that scores frontier points; the best reachable one becomes the goal."""
+
+    @abstractmethod
+    def score(self, context: PlanningContext) -> np.ndarray:
+        """float64 (K,) score per frontier, higher is better."""
+
+    def select_goal(self, context: PlanningContext) -> np.ndarray | None:
+        if len(context.frontiers) == 0:
+            return None
+        scores = self.score(context)
+        for index in np.argsort(-scores, kind="stable"):
+            if np.isfinite(scores[index]) and context.can_reach(context.frontiers[index]):
+                return context.frontiers[index]
+        return None

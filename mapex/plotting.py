@@ -1,0 +1,50 @@
+"""Pictures of a run: observed map with trajectory, predicted map, ground truth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from mapex.grid import observed_to_probability  # noqa: E402
+
+
+def occupancy_image(probability: np.ndarray) -> np.ndarray:
+    """Grey image of an occupancy-probability map: free white, unknown grey, walls black."""
+    return 1.0 - np.clip(probability, 0.0, 1.0)
+
+
+def plot_episode(
+    path: Path,
+    title: str,
+    observed: np.ndarray,
+    prediction: np.ndarray | None,
+    ground_truth: np.ndarray,
+    trajectory: np.ndarray,
+) -> None:
+    """Save a three-panel PNG of the final observed map, predicted map and ground truth."""
+    panels = [("observed map O_T + trajectory", occupancy_image(observed_to_probability(observed)))]
+    if prediction is not None:
+        panels.append(("predicted map P_T (G)", occupancy_image(prediction)))
+    panels.append(("ground truth", occupancy_image(ground_truth.astype(np.float32))))
+    rows, cols = observed.shape
+    width = 5.0 * len(panels) if cols < rows * 1.5 else 12.0
+    layout = (1, len(panels)) if cols < rows * 1.5 else (len(panels), 1)
+    height = width * rows / cols * (len(panels) if layout[1] == 1 else 1.0 / len(panels)) + 1.0
+    fig, axes = plt.subplots(*layout, figsize=(width, height), squeeze=False)
+    for ax, (name, image) in zip(axes.ravel(), panels, strict=True):
+        ax.imshow(image, cmap="gray", vmin=0.0, vmax=1.0, interpolation="nearest")
+        ax.plot(trajectory[:, 1], trajectory[:, 0], color="tab:red", linewidth=1.0)
+        ax.plot(trajectory[0, 1], trajectory[0, 0], "o", color="tab:green", markersize=5)
+        ax.plot(trajectory[-1, 1], trajectory[-1, 0], "s", color="tab:blue", markersize=5)
+        ax.set_title(name, fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

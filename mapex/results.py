@@ -1,0 +1,101 @@
+"""The results folder of a run: metrics JSON, curves CSV, trajectory CSV and a PNG.
+
+A folder is written under a temporary name and renamed into place, so a reader
+(or a resumed batch evaluation) never sees half a run.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import shutil
+import tempfile
+from pathlib import Path
+
+from mapex.episode import EpisodeResult
+from mapex.plotting import plot_episode
+from mapex.worlds.base import World
+
+METRICS_FILE = "metrics.json"
+CURVES_FILE = "curves.csv"
+TRAJECTORY_FILE = "trajectory.csv"
+PICTURE_FILE = "final.png"
+
+
+def run_name(result: EpisodeResult) -> str:
+    """A file-system-safe name for the run, e.g. `generated_0-mapex-start0-seed0`."""
+    world = result.world.replace(":", "_").replace("/", "_")
+    return f"{world}-{result.method}-start{result.start_index}-seed{result.seed}"
+
+
+def summary(result: EpisodeResult) -> dict:
+    """The run's record as plain JSON-serialisable data."""
+    return {
+        "world": result.world,
+        "method": result.method,
+        "predictor": result.predictor,
+        "start_index": result.start_index,
+        "start": list(result.start),
+        "seed": result.seed,
+        "steps": result.steps,
+        "finished_at": result.finished_at,
+        "early_termination": result.finished_at is not None,
+        "auc": _json_floats(result.curves.auc()),
+        "final": {
+            "coverage": result.curves.coverage[-1],
+            "iou": result.curves.iou[-1],
+            "tu": _json_float(result.curves.tu[-1]),
+        },
+        "replans": result.stats.replans,
+        "path_repairs": result.stats.path_repairs,
+        "wall_time_s": round(result.wall_time_s, 3),
+        "config": dataclasses.asdict(result.config),
+    }
+
+
+def write_results(result: EpisodeResult, world: World, out_dir: Path) -> Path:
+    """Write the run's folder atomically to `out_dir` (replacing an older one)."""
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    (staging / METRICS_FILE).write_text(json.dumps(summary(result), indent=2) + "\n")
+    _write_curves(result, staging / CURVES_FILE)
+    _write_trajectory(result, staging / TRAJECTORY_FILE)
+    plot_episode(
+        staging / PICTURE_FILE,
+        f"{result.world} | {result.method} | start {result.start_index} | seed {result.seed}",
+        result.final_observed,
+        result.final_prediction,
+        world.occupancy,
+        result.trajectory,
+    )
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    staging.rename(out_dir)
+    return out_dir
+
+
+def _write_curves(result: EpisodeResult, path: Path) -> None:
+    curves = result.curves
+    with path.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["step", "coverage", "iou", "tu"])
+        for row in zip(curves.steps, curves.coverage, curves.iou, curves.tu, strict=True):
+            writer.writerow([row[0], *(f"{v:.6f}" if math.isfinite(v) else "" for v in row[1:])])
+
+
+def _write_trajectory(result: EpisodeResult, path: Path) -> None:
+    with path.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["step", "row", "col"])
+        writer.writerows([t, int(r), int(c)] for t, (r, c) in enumerate(result.trajectory))
+
+
+def _json_float(value: float) -> float | None:
+    return None if not math.isfinite(value) else round(float(value), 6)
+
+
+def _json_floats(values: dict[str, float]) -> dict[str, float | None]:
+    return {key: _json_float(value) for key, value in values.items()}

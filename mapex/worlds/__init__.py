@@ -1,0 +1,56 @@
+"""Ground-truth worlds (SPEC §1): KTH map directories, procedural floor plans, start poses.
+
+`load_world` turns a world spec into a World: "generated:<seed>", "default" (the
+embedded default world, DEFAULT_WORLD) or the path of a KTH map directory.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from mapex.worlds.base import World, WorldError
+from mapex.worlds.kth import load_kth_map
+from mapex.worlds.starts import start_poses
+
+DEFAULT_WORLD = "generated:0"
+DEFAULT_SPEC = "default"
+GENERATED_PREFIX = "generated:"
+
+__all__ = [
+    "DEFAULT_WORLD",
+    "World",
+    "WorldError",
+    "generate_floor_plan",
+    "load_kth_map",
+    "load_world",
+    "start_poses",
+]
+
+
+def __getattr__(name: str) -> Any:
+    """`generate_floor_plan`, imported on first use so that `python -m
+    mapex.worlds.procedural` does not find its module already imported."""
+    if name == "generate_floor_plan":
+        from mapex.worlds.procedural import generate_floor_plan
+
+        return generate_floor_plan
+    raise AttributeError(f"module 'mapex.worlds' has no attribute '{name}'")
+
+
+def load_world(spec: str) -> World:
+    """The world named by `spec`; a one-line WorldError when it names none."""
+    if not spec:
+        raise WorldError("empty world spec: expected 'default', 'generated:<seed>' or a directory")
+    if spec == DEFAULT_SPEC:
+        spec = DEFAULT_WORLD
+    if spec.startswith(GENERATED_PREFIX):
+        from mapex.worlds.procedural import generate_floor_plan
+
+        return generate_floor_plan(_parse_seed(spec[len(GENERATED_PREFIX) :]))
+    return load_kth_map(spec)
+
+
+def _parse_seed(text: str) -> int:
+    if not (text.isascii() and text.isdigit()):
+        raise WorldError(f"bad generated seed '{text}': expected a non-negative integer")
+    return int(text)

@@ -1,0 +1,54 @@
+"""The `python -m mapex` command line: a real small run and one-line errors on bad input."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from mapex.cli import main
+
+
+def run_cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "mapex", *args], capture_output=True, text=True, cwd=cwd, timeout=300
+    )
+
+
+def test_run_writes_the_results_folder(tmp_path):
+    out = tmp_path / "run"
+    code = main(["run", "--world", "generated:2", "--method", "mapex", "--steps", "60",
+                 "--no-progress", "--out", str(out)])
+    assert code == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["method"] == "mapex" and metrics["steps"] == 60
+    assert 0.0 < metrics["auc"]["coverage"] <= 1.0
+    assert (out / "curves.csv").read_text().splitlines()[0] == "step,coverage,iou,tu"
+    assert len((out / "trajectory.csv").read_text().splitlines()) >= 2
+    assert (out / "final.png").read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--world", "/no/such/map"], "/no/such/map"),
+        (["--world", "generated:abc"], "abc"),
+        (["--method", "best"], "invalid choice"),
+        (["--steps", "0"], "--steps"),
+        (["--set", "visibility.nosuch=1"], "nosuch"),
+        (["--start", "7"], "invalid choice"),
+    ],
+)
+def test_bad_input_gives_one_line_error(args, message):
+    done = run_cli("run", "--no-progress", *args)
+    assert done.returncode == 2
+    assert "Traceback" not in done.stderr
+    error_lines = [line for line in done.stderr.splitlines() if "error" in line]
+    assert len(error_lines) == 1 and message in error_lines[0]
+
+
+def test_bad_map_file_gives_one_line_error(tmp_path):
+    (tmp_path / "occ_map.npy").write_bytes(b"not a numpy file")
+    done = run_cli("run", "--no-progress", "--world", str(tmp_path))
+    assert done.returncode == 2
+    assert "Traceback" not in done.stderr and "occ_map.npy" in done.stderr

@@ -1,0 +1,31 @@
+import pytest
+
+from mapex.config import ConfigError, ExplorationConfig, apply_overrides
+
+
+def test_override_sets_typed_values():
+    config = apply_overrides(
+        ExplorationConfig(),
+        ["steps=12", "visibility.stop_rule=accumulate", "visibility.epsilon=0.6", "motion.cells_per_step=2"],
+    )
+    assert config.steps == 12
+    assert config.visibility.stop_rule == "accumulate"
+    assert config.visibility.epsilon == pytest.approx(0.6)
+    assert config.motion.cells_per_step == 2
+    assert ExplorationConfig().visibility.stop_rule == "threshold"  # the default is untouched
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("nosuch=1", "unknown field 'nosuch'"),
+        ("visibility.nosuch=1", "unknown field 'nosuch'"),
+        ("steps=many", "not a valid int"),
+        ("visibility.stop_rule=sometimes", "choose one of"),
+        ("steps", "section.field=value"),
+    ],
+)
+def test_bad_overrides_are_one_line_errors(override, message):
+    with pytest.raises(ConfigError, match=message) as info:
+        apply_overrides(ExplorationConfig(), [override])
+    assert "\n" not in str(info.value)

@@ -1,0 +1,111 @@
+"""The predictor interface: ensemble statistics, region prediction, known-cell copy-through."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapex.grid import FREE, OCCUPIED, UNKNOWN, observed_to_probability
+from mapex.prediction.base import EnsemblePrediction, Predictor, known_region
+
+
+class _ConstantMembers(Predictor):
+    """Member i predicts (i + 1) / 10 everywhere; remembers the crops it was given."""
+
+    name = "constant"
+
+    def __init__(self, n_members: int = 3) -> None:
+        self.n_members = n_members
+        self.crops: list[np.ndarray] = []
+
+    def predict_members(self, observed: np.ndarray) -> np.ndarray:
+        self.crops.append(observed.copy())
+        values = (np.arange(self.n_members, dtype=np.float32) + 1) / 10
+        return np.broadcast_to(values[:, None, None], (self.n_members, *observed.shape)).copy()
+
+
+def _random_observed(shape: tuple[int, int], seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.choice(np.array([FREE, UNKNOWN, OCCUPIED], dtype=np.uint8), size=shape)
+
+
+@pytest.mark.parametrize(
+    ("values", "mean", "variance"),
+    [([0.0, 1.0], 0.5, 0.5), ([0.2, 0.4, 0.6], 0.4, 0.04), ([0.3, 0.3, 0.3, 0.3], 0.3, 0.0)],
+)
+def test_mean_and_unbiased_variance(values: list[float], mean: float, variance: float) -> None:
+    members = np.array(values, dtype=np.float32)[:, None, None] * np.ones((1, 2, 3), np.float32)
+    prediction = EnsemblePrediction(members)
+    assert prediction.mean.dtype == np.float32 and prediction.variance.dtype == np.float32
+    np.testing.assert_allclose(prediction.mean, mean, atol=1e-6)
+    np.testing.assert_allclose(prediction.variance, variance, atol=1e-6)
+    np.testing.assert_array_equal(prediction.main, members[0])
+
+
+def test_variance_of_a_single_member_is_zero() -> None:
+    prediction = EnsemblePrediction(np.full((1, 4, 5), 0.7, dtype=np.float32))
+    np.testing.assert_array_equal(prediction.variance, np.zeros((4, 5), np.float32))
+    np.testing.assert_allclose(prediction.mean, 0.7)
+
+
+def test_variance_matches_numpy_ddof_one_per_cell() -> None:
+    members = np.random.default_rng(3).random((4, 6, 7)).astype(np.float32)
+    prediction = EnsemblePrediction(members)
+    np.testing.assert_allclose(prediction.variance, np.var(members, axis=0, ddof=1), rtol=1e-5)
+    np.testing.assert_allclose(prediction.mean, members.mean(axis=0), rtol=1e-6)
+
+
+def test_predict_whole_map_copies_known_cells_and_fills_unknown_ones() -> None:
+    observed = _random_observed((9, 13), seed=1)
+    predictor = _ConstantMembers(n_members=3)
+    prediction = predictor.predict(observed)
+    assert prediction.members.shape == (3, 9, 13) and prediction.members.dtype == np.float32
+    np.testing.assert_array_equal(predictor.crops[0], observed)
+    known = observed != UNKNOWN
+    for i in range(3):
+        member = prediction.members[i]
+        np.testing.assert_array_equal(member[known], observed[known] / 2)
+        np.testing.assert_allclose(member[~known], (i + 1) / 10)
+    np.testing.assert_array_equal(prediction.variance[known], 0.0)
+    np.testing.assert_allclose(prediction.variance[~known], 0.01, rtol=1e-5)
+
+
+def test_predict_region_only_touches_the_region() -> None:
+    observed = _random_observed((20, 30), seed=2)
+    region = (3, 11, 5, 24)
+    predictor = _ConstantMembers(n_members=2)
+    prediction = predictor.predict(observed, region)
+    np.testing.assert_array_equal(predictor.crops[0], observed[3:11, 5:24])
+    inside = np.zeros(observed.shape, dtype=bool)
+    inside[3:11, 5:24] = True
+    expected_outside = observed_to_probability(observed)[~inside]
+    for member in prediction.members:
+        np.testing.assert_array_equal(member[~inside], expected_outside)  # unknown stays 0.5
+    np.testing.assert_array_equal(prediction.variance[~inside], 0.0)
+    unknown_inside = inside & (observed == UNKNOWN)
+    np.testing.assert_allclose(prediction.members[1][unknown_inside], 0.2)
+
+
+def test_predict_main_is_member_zero_of_the_whole_map() -> None:
+    observed = _random_observed((5, 8), seed=4)
+    predictor = _ConstantMembers(n_members=2)
+    np.testing.assert_array_equal(
+        predictor.predict_main(observed), predictor.predict(observed).main
+    )
+
+
+@pytest.mark.parametrize(
+    ("margin", "expected"), [(0, (4, 7, 10, 16)), (2, (2, 9, 8, 18)), (50, (0, 20, 0, 30))]
+)
+def test_known_region_is_the_grown_and_clipped_bounding_box(
+    margin: int, expected: tuple[int, int, int, int]
+) -> None:
+    observed = np.full((20, 30), UNKNOWN, dtype=np.uint8)
+    observed[4, 12] = FREE
+    observed[6, 10] = OCCUPIED
+    observed[5, 15] = FREE
+    assert known_region(observed, margin) == expected
+
+
+def test_known_region_of_an_all_unknown_map_is_the_whole_map() -> None:
+    assert known_region(np.full((7, 9), UNKNOWN, dtype=np.uint8), 3) == (0, 7, 0, 9)

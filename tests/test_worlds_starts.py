@@ -1,0 +1,93 @@
+"""Start poses: nearest cell to each valid-space corner with enough wall clearance."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from mapex.config import WorldConfig
+from mapex.worlds import World, WorldError, generate_floor_plan, load_kth_map, start_poses
+from mapex.worlds.starts import eligible_start_cells
+
+CLEARANCE = WorldConfig().start_clearance_cells
+DEV_MAPS = ["50015847", "50015848", "50037764_PLAN1", "50052748"]
+
+
+def room_world(rows: int = 20, cols: int = 30) -> World:
+    """A walled rectangle whose whole interior is valid."""
+    walls = np.zeros((rows, cols), dtype=bool)
+    walls[[0, -1], :] = True
+    walls[:, [0, -1]] = True
+    return World("room", walls, ~walls)
+
+
+def test_starts_of_a_rectangular_room_are_its_clear_corners() -> None:
+    # clearance 3: a start needs 3 free cells to the wall, i.e. distance >= 4 from row/col 0
+    assert start_poses(room_world(), 3) == [(4, 4), (4, 25), (15, 4), (15, 25)]
+
+
+@pytest.mark.parametrize("clearance, first", [(0, (1, 1)), (1, (2, 2)), (5, (6, 6))])
+def test_clearance_moves_the_start_away_from_the_walls(clearance: int, first) -> None:
+    assert start_poses(room_world(), clearance)[0] == first
+
+
+def test_ties_break_by_row_then_column() -> None:
+    walls = np.ones((3, 3), dtype=bool)
+    walls[0, 1] = walls[1, 0] = False  # both at distance 1 from the corner (0, 0)
+    world = World("tie", walls, np.ones((3, 3), dtype=bool))
+    assert start_poses(world, 0)[0] == (0, 1)
+
+
+def test_map_edge_counts_as_wall() -> None:
+    world = World("open", np.zeros((10, 10), dtype=bool), np.ones((10, 10), dtype=bool))
+    eligible = eligible_start_cells(world, 3)
+    rows, cols = np.nonzero(eligible)
+    assert rows.min() == 3 and rows.max() == 6 and cols.min() == 3 and cols.max() == 6
+
+
+def test_starts_stay_in_valid_space() -> None:
+    world = room_world()
+    valid = np.zeros(world.shape, dtype=bool)
+    valid[8:14, 10:20] = True
+    world = World("part", world.occupancy, valid)
+    starts = start_poses(world, 3)
+    assert starts == [(8, 10), (8, 19), (13, 10), (13, 19)]
+
+
+def test_no_clear_cell_is_an_error() -> None:
+    with pytest.raises(WorldError, match="no free valid cell with 9 cells of clearance"):
+        start_poses(room_world(), 9)
+
+
+def test_negative_clearance_is_rejected() -> None:
+    with pytest.raises(ValueError, match="clearance_cells"):
+        start_poses(room_world(), -1)
+
+
+def assert_good_starts(world: World, clearance: int) -> None:
+    starts = start_poses(world, clearance)
+    assert len(starts) == 4 and len(set(starts)) == 4
+    walls = cKDTree(np.argwhere(world.occupancy))
+    for row, col in starts:
+        assert not world.occupancy[row, col] and world.valid_space[row, col]
+        distance, _ = walls.query((row, col))
+        assert distance >= clearance + 1
+    assert start_poses(world, clearance) == starts  # deterministic
+    # each start lies in its own corner's quadrant of the valid-space box
+    rows, cols = np.nonzero(world.valid_space)
+    mid_row, mid_col = (rows.min() + rows.max()) / 2, (cols.min() + cols.max()) / 2
+    quadrants = [(r > mid_row, c > mid_col) for r, c in starts]
+    assert quadrants == [(False, False), (False, True), (True, False), (True, True)]
+
+
+@pytest.mark.parametrize("map_id", DEV_MAPS)
+def test_dev_map_starts(kth_dev_dir: Path, map_id: str) -> None:
+    assert_good_starts(load_kth_map(kth_dev_dir / map_id), CLEARANCE)
+
+
+@pytest.mark.parametrize("seed", [0, 3, 8, 21])
+def test_generated_world_starts(seed: int) -> None:
+    assert_good_starts(generate_floor_plan(seed), CLEARANCE)
