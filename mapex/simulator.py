@@ -41,10 +41,9 @@ class Simulator:
         """Drive robot `robot` through `cells` (k <= cells_per_step, each one 8-connected move)
         and return the scan at its new pose."""
         cells = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
-        if len(cells) > self.motion.cells_per_step:
-            raise MotionError(
-                f"robot {robot}: {len(cells)} cells in one step (at most {self.motion.cells_per_step})"
-            )
+        limit = self.motion.cells_per_step
+        if len(cells) > limit:
+            raise MotionError(f"robot {robot}: {len(cells)} cells in one step (at most {limit})")
         previous = self.poses[robot]
         for cell in cells:
             if np.abs(cell - previous).max() != 1:

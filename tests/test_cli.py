@@ -17,8 +17,20 @@ def run_cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
 
 def test_run_writes_the_results_folder(tmp_path):
     out = tmp_path / "run"
-    code = main(["run", "--world", "generated:2", "--method", "mapex", "--steps", "60",
-                 "--no-progress", "--out", str(out)])
+    code = main(
+        [
+            "run",
+            "--world",
+            "generated:2",
+            "--method",
+            "mapex",
+            "--steps",
+            "60",
+            "--no-progress",
+            "--out",
+            str(out),
+        ]
+    )
     assert code == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["method"] == "mapex" and metrics["steps"] == 60

@@ -6,7 +6,12 @@ from mapex.config import ConfigError, ExplorationConfig, apply_overrides
 def test_override_sets_typed_values():
     config = apply_overrides(
         ExplorationConfig(),
-        ["steps=12", "visibility.stop_rule=accumulate", "visibility.epsilon=0.6", "motion.cells_per_step=2"],
+        [
+            "steps=12",
+            "visibility.stop_rule=accumulate",
+            "visibility.epsilon=0.6",
+            "motion.cells_per_step=2",
+        ],
     )
     assert config.steps == 12
     assert config.visibility.stop_rule == "accumulate"

@@ -12,14 +12,18 @@ from mapex.worlds.base import World
 @pytest.fixture(scope="module")
 def nearest_run():
     world = generate_floor_plan(3)
-    result = run_episode(world, "nearest", make_predictor("classical"), 0, 0, ExplorationConfig(steps=200))
+    result = run_episode(
+        world, "nearest", make_predictor("classical"), 0, 0, ExplorationConfig(steps=200)
+    )
     return world, result
 
 
 def test_curves_are_sampled_on_schedule(nearest_run):
     _, result = nearest_run
     assert result.curves.steps == list(range(0, 201, 50))
-    tu_sampled = [t for t, v in zip(result.curves.steps, result.curves.tu, strict=True) if np.isfinite(v)]
+    tu_sampled = [
+        t for t, v in zip(result.curves.steps, result.curves.tu, strict=True) if np.isfinite(v)
+    ]
     assert tu_sampled == [0, 100, 200]
     assert all(0.0 <= v <= 1.0 for v in result.curves.coverage + result.curves.iou)
     assert result.curves.coverage == sorted(result.curves.coverage)  # coverage never drops

@@ -17,8 +17,8 @@ ROBOT = (30, 28)
 
 
 def two_frontier_context(config: ExplorationConfig) -> PlanningContext:
-    """A known room (cols 25-35, split by a wall with a doorway) with a frontier on each side; the robot
-    is nearer the left one.
+    """A known room (cols 25-35, split by a wall with a doorway) with a frontier on each
+    side; the robot is nearer the left one.
 
     The prediction says: a wall 3 cells beyond the left frontier and open space with
     high ensemble disagreement beyond the right one.

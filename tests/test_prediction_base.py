@@ -18,10 +18,10 @@ class _ConstantMembers(Predictor):
         self.n_members = n_members
         self.crops: list[np.ndarray] = []
 
-    def predict_members(self, observed: np.ndarray) -> np.ndarray:
+    def predict_members(self, observed: np.ndarray, members) -> np.ndarray:
         self.crops.append(observed.copy())
-        values = (np.arange(self.n_members, dtype=np.float32) + 1) / 10
-        return np.broadcast_to(values[:, None, None], (self.n_members, *observed.shape)).copy()
+        values = (np.asarray(members, dtype=np.float32) + 1) / 10
+        return np.broadcast_to(values[:, None, None], (len(values), *observed.shape)).copy()
 
 
 def _random_observed(shape: tuple[int, int], seed: int) -> np.ndarray:
@@ -109,3 +109,15 @@ def test_known_region_is_the_grown_and_clipped_bounding_box(
 
 def test_known_region_of_an_all_unknown_map_is_the_whole_map() -> None:
     assert known_region(np.full((7, 9), UNKNOWN, dtype=np.uint8), 3) == (0, 7, 0, 9)
+
+
+def test_region_prediction_matches_whole_map_statistics_inside_the_region():
+    observed = _random_observed((30, 40), seed=3)
+    region = (5, 20, 10, 35)
+    prediction = _ConstantMembers().predict(observed, region)
+    reference = EnsemblePrediction(prediction.members)  # statistics over the whole map
+    np.testing.assert_allclose(prediction.mean, reference.mean, atol=1e-6)
+    np.testing.assert_allclose(prediction.variance, reference.variance, atol=1e-6)
+    np.testing.assert_allclose(
+        reference.variance, prediction.members.var(axis=0, ddof=1), atol=1e-6
+    )

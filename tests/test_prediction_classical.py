@@ -61,7 +61,7 @@ def test_members_have_the_map_shape_and_stay_in_unit_range(
     predictor: ClassicalInpaintingEnsemble, shape: tuple[int, int]
 ) -> None:
     observed = _random_observed(shape, seed=sum(shape))
-    members = predictor.predict_members(observed)
+    members = predictor.predict_members(observed, range(4))
     assert members.shape == (4, *shape) and members.dtype == np.float32
     assert np.isfinite(members).all()
     assert members.min() >= 0.0 and members.max() <= 1.0
@@ -100,7 +100,7 @@ def test_region_prediction_leaves_the_outside_at_the_observed_map(
     for member in prediction.members:
         np.testing.assert_array_equal(member[outside], observed_to_probability(observed)[outside])
     np.testing.assert_array_equal(prediction.variance[outside], 0.0)
-    crop_members = predictor.predict_members(observed[20:100, 50:150])
+    crop_members = predictor.predict_members(observed[20:100, 50:150], range(4))
     unknown_crop = observed[20:100, 50:150] == UNKNOWN
     np.testing.assert_array_equal(
         prediction.members[:, 20:100, 50:150][:, unknown_crop], crop_members[:, unknown_crop]
@@ -135,14 +135,14 @@ def test_a_corridor_wall_cut_by_unknown_space_continues(
 def test_an_all_unknown_crop_gets_each_members_prior(
     predictor: ClassicalInpaintingEnsemble,
 ) -> None:
-    members = predictor.predict_members(np.full((9, 14), UNKNOWN, dtype=np.uint8))
+    members = predictor.predict_members(np.full((9, 14), UNKNOWN, dtype=np.uint8), range(4))
     for member, config in zip(members, predictor.config.members, strict=True):
         np.testing.assert_allclose(member, config.prior, atol=1e-6)
 
 
 def test_each_member_is_the_configured_inpainting(predictor: ClassicalInpaintingEnsemble) -> None:
     observed = _reveal_disc(_floor_plan(), (60, 100), 30)
-    members = predictor.predict_members(observed)
+    members = predictor.predict_members(observed, range(4))
     for member, config in zip(members, predictor.config.members, strict=True):
         np.testing.assert_array_equal(member, inpaint_member(observed, config))
     assert not np.array_equal(members[0], members[1])
@@ -211,4 +211,4 @@ def test_no_members_and_bad_maps_are_rejected(predictor: ClassicalInpaintingEnse
     with pytest.raises(ValueError, match="at least one member"):
         ClassicalInpaintingEnsemble(ClassicalPredictorConfig(members=()))
     with pytest.raises(ValueError, match="2-D uint8"):
-        predictor.predict_members(np.zeros((4, 4), dtype=np.float64))
+        predictor.predict_members(np.zeros((4, 4), dtype=np.float64), range(4))

@@ -14,6 +14,7 @@ import numpy as np
 
 from mapex.config import ExplorationConfig
 from mapex.grid import FREE, UNKNOWN
+from mapex.navigation import plan_path
 from mapex.prediction.base import EnsemblePrediction
 
 
@@ -42,17 +43,27 @@ class PlanningContext:
         return np.maximum(np.hypot(offsets[:, 0], offsets[:, 1]), 1.0)
 
     def unknown_weights(self, values: np.ndarray | float) -> np.ndarray:
-        """float32 map: `values` on unknown cells, 0 on known ones (the visible set excludes them)."""
+        """float32 map: `values` on unknown cells, 0 on known ones (not in any visible set)."""
         unknown = self.observed == UNKNOWN
         return np.where(unknown, values, 0).astype(np.float32)
 
     def can_reach(self, cell: np.ndarray) -> bool:
-        """A known-free cell the robot can drive to (itself, or next to a reachable cell)."""
+        """Whether A* finds a path from the robot to this known-free cell.
+
+        A passable cell is decided by the reachability map; a free goal inside the wall
+        inflation (which A* may still enter as its last cell) by A* itself, when one of
+        its neighbours is reachable.
+        """
         row, col = int(cell[0]), int(cell[1])
         if self.observed[row, col] != FREE:
             return False
+        if self.reachable[row, col]:
+            return True
         window = self.reachable[max(row - 1, 0) : row + 2, max(col - 1, 0) : col + 2]
-        return bool(window.any())
+        if not window.any():
+            return False
+        pose = (int(self.pose[0]), int(self.pose[1]))
+        return plan_path(self.observed, self.cost, pose, (row, col)) is not None
 
 
 class Method(ABC):

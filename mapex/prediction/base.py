@@ -9,7 +9,9 @@ only unknown cells carry a prediction.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -20,26 +22,43 @@ Region = tuple[int, int, int, int]  # row_start, row_stop, col_start, col_stop (
 
 @dataclass(frozen=True)
 class EnsemblePrediction:
-    """Member predictions, float32 (n_members, rows, cols); member 0 is G."""
+    """Member predictions, float32 (n_members, rows, cols); member 0 is G.
+
+    Only `region` was predicted: outside it every member holds the observed map,
+    so the mean is that map and the variance is zero there.
+    """
 
     members: np.ndarray
+    region: Region | None = None
 
     @property
     def main(self) -> np.ndarray:
         """P_t = G(O_t)."""
         return self.members[0]
 
-    @property
+    @cached_property
     def mean(self) -> np.ndarray:
         """M_t, the mean over members."""
-        return self.members.mean(axis=0, dtype=np.float32)
+        mean = self.members[0].copy()
+        window = self._window()
+        mean[window] = self.members[(slice(None), *window)].mean(axis=0, dtype=np.float32)
+        return mean
 
-    @property
+    @cached_property
     def variance(self) -> np.ndarray:
         """V_t, the unbiased variance over members (zeros with fewer than two)."""
-        if len(self.members) < 2:
-            return np.zeros(self.members.shape[1:], dtype=np.float32)
-        return self.members.var(axis=0, ddof=1, dtype=np.float32)
+        variance = np.zeros(self.members.shape[1:], dtype=np.float32)
+        if len(self.members) >= 2:
+            window = self._window()
+            deviations = self.members[(slice(None), *window)] - self.mean[window]
+            variance[window] = np.einsum("kij,kij->ij", deviations, deviations) / np.float32(
+                len(self.members) - 1
+            )
+        return variance
+
+    def _window(self) -> tuple[slice, slice]:
+        r0, r1, c0, c1 = self.region or (0, self.members.shape[1], 0, self.members.shape[2])
+        return slice(r0, r1), slice(c0, c1)
 
 
 class Predictor(ABC):
@@ -49,29 +68,36 @@ class Predictor(ABC):
     n_members: int = 4
 
     @abstractmethod
-    def predict_members(self, observed: np.ndarray) -> np.ndarray:
-        """Raw member outputs, float32 (n_members, rows, cols) in [0, 1], for a map crop."""
+    def predict_members(self, observed: np.ndarray, members: Sequence[int]) -> np.ndarray:
+        """Raw outputs of the chosen members, float32 (len(members), rows, cols) in [0, 1],
+        for a map crop."""
 
-    def predict(self, observed: np.ndarray, region: Region | None = None) -> EnsemblePrediction:
-        """Predict every member on `region` of `observed` (whole map if None).
+    def predict(
+        self,
+        observed: np.ndarray,
+        region: Region | None = None,
+        members: Sequence[int] | None = None,
+    ) -> EnsemblePrediction:
+        """Predict the chosen members (all if None) on `region` of `observed` (whole map if None).
 
         Outside the region the members keep the observed map (unknown = 0.5, so
         zero variance); inside, known cells are copied through from O_t.
         """
+        members = tuple(range(self.n_members)) if members is None else tuple(members)
+        r0, r1, c0, c1 = region or (0, observed.shape[0], 0, observed.shape[1])
         known_prob = observed_to_probability(observed)
-        members = np.repeat(known_prob[None], self.n_members, axis=0)
-        r0, r1, c0, c1 = (
-            region if region is not None else (0, observed.shape[0], 0, observed.shape[1])
-        )
+        stacked = np.repeat(known_prob[None], len(members), axis=0)
         crop = observed[r0:r1, c0:c1]
-        raw = self.predict_members(crop)
+        raw = self.predict_members(crop, members)
+        if raw.shape != (len(members), *crop.shape):
+            raise ValueError(f"{self.name}: members returned {raw.shape}, expected {crop.shape}")
         unknown = crop == UNKNOWN
-        members[:, r0:r1, c0:c1] = np.where(unknown[None], raw, known_prob[None, r0:r1, c0:c1])
-        return EnsemblePrediction(members.astype(np.float32, copy=False))
+        stacked[:, r0:r1, c0:c1] = np.where(unknown[None], raw, known_prob[None, r0:r1, c0:c1])
+        return EnsemblePrediction(stacked, region)
 
     def predict_main(self, observed: np.ndarray) -> np.ndarray:
         """G's whole-map prediction with known cells copied through (what the metrics judge)."""
-        return self.predict(observed).main
+        return self.predict(observed, members=(0,)).main
 
 
 def known_region(observed: np.ndarray, margin_cells: int) -> Region:

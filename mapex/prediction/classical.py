@@ -20,6 +20,8 @@ Why these choices:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import cv2
 import numpy as np
 
@@ -44,15 +46,15 @@ class ClassicalInpaintingEnsemble(Predictor):
         self.config = config
         self.n_members = len(config.members)
 
-    def predict_members(self, observed: np.ndarray) -> np.ndarray:
-        """Float32 (n_members, rows, cols) wall probabilities in [0, 1] for a map crop."""
+    def predict_members(self, observed: np.ndarray, members: Sequence[int]) -> np.ndarray:
+        """Float32 (len(members), rows, cols) wall probabilities in [0, 1] for a map crop."""
         if not isinstance(observed, np.ndarray) or observed.ndim != 2 or observed.dtype != np.uint8:
             raise ValueError(
                 "observed map must be a 2-D uint8 array of FREE/UNKNOWN/OCCUPIED codes"
             )
         if observed.size == 0:
-            return np.zeros((self.n_members, *observed.shape), dtype=np.float32)
-        return np.stack([inpaint_member(observed, member) for member in self.config.members])
+            return np.zeros((len(members), *observed.shape), dtype=np.float32)
+        return np.stack([inpaint_member(observed, self.config.members[k]) for k in members])
 
 
 def _check_member(member: InpaintMemberConfig) -> None:
