@@ -1,0 +1,64 @@
+"""The goal-keeping and re-planning rule of SPEC §3, on hand-made maps."""
+
+import numpy as np
+
+from mapex.config import ExplorationConfig
+from mapex.explorer import Explorer
+from mapex.grid import FREE, OCCUPIED, UNKNOWN
+from mapex.methods import make_method
+
+
+def explorer_in_corridor() -> Explorer:
+    """A known corridor (rows 10-20) open to unknown space at its right end (col 60)."""
+    config = ExplorationConfig()
+    explorer = Explorer((31, 80), make_method("nearest", config), None, config, seed=0)
+    explorer.observed[9, :61] = OCCUPIED
+    explorer.observed[21, :61] = OCCUPIED
+    explorer.observed[10:21, :61] = FREE
+    explorer.pose = np.array([15, 5])
+    return explorer
+
+
+def test_first_motion_plans_to_the_frontier_and_moves_three_cells():
+    explorer = explorer_in_corridor()
+    moved = explorer.next_motion(0)
+    assert explorer.stats.replans == 1
+    assert explorer.goal[1] == 60  # the frontier at the open end
+    assert len(moved) == 3
+    assert np.abs(np.diff(np.vstack([explorer.pose, moved]), axis=0)).max() == 1
+
+
+def test_goal_is_kept_while_it_is_worth_going_to():
+    explorer = explorer_in_corridor()
+    for t in range(5):
+        moved = explorer.next_motion(t)
+        explorer.pose = moved[-1]
+    assert explorer.stats.replans == 1
+
+
+def test_goal_is_dropped_when_no_unknown_cell_remains_near_it():
+    explorer = explorer_in_corridor()
+    explorer.pose = explorer.next_motion(0)[-1]
+    explorer.observed[explorer.observed == UNKNOWN] = OCCUPIED  # all else seen: solid rock
+    explorer.observed[10:21, 61:75] = FREE  # the space behind the goal, closed by walls
+    assert explorer.next_motion(1) is None  # no frontier left: exploration is over
+    assert explorer.stats.replans == 2
+
+
+def test_a_new_wall_on_the_path_makes_the_planner_repair_it():
+    explorer = explorer_in_corridor()
+    explorer.pose = explorer.next_motion(0)[-1]
+    ahead = explorer.path[len(explorer.path) // 2]
+    explorer.observed[ahead[0], ahead[1] - 1 : ahead[1] + 2] = OCCUPIED  # a pillar on the path
+    explorer.next_motion(1)
+    assert explorer.stats.path_repairs == 1
+    assert not (explorer.observed[explorer.path[:, 0], explorer.path[:, 1]] == OCCUPIED).any()
+
+
+def test_unknown_everywhere_but_the_robot_cell_gives_no_motion():
+    config = ExplorationConfig()
+    explorer = Explorer((10, 10), make_method("nearest", config), None, config, seed=0)
+    explorer.observed[5, 5] = FREE
+    explorer.pose = np.array([5, 5])
+    assert (explorer.observed == UNKNOWN).sum() == 99
+    assert explorer.next_motion(0) is None  # a single free cell is no frontier cluster
