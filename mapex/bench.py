@@ -25,7 +25,7 @@ from mapex.frontiers import extract_frontiers
 from mapex.grid import FREE, new_observed_map
 from mapex.methods import PlanningContext, make_method
 from mapex.navigation import cost_map, plan_path, reachable_mask
-from mapex.prediction import make_predictor
+from mapex.prediction import DEFAULT_PREDICTOR, make_predictor
 from mapex.prediction.base import EnsemblePrediction
 from mapex.sensor import cast_scan, integrate_scan, scan_and_integrate
 from mapex.simulator import Simulator
@@ -36,6 +36,8 @@ TARGETS_MS = {
     "scan + integration": 2.0,
     "score 30 frontiers (mapex)": 20.0,
     "nearest episode": 15000.0,
+    "one member, whole map, 1 thread": 800.0,
+    "four members, whole map, 2 threads": 1500.0,
 }
 
 
@@ -145,16 +147,39 @@ def bench_astar(world, config: ExplorationConfig, repeats: int) -> None:
     )
 
 
-def bench_episode(world, config: ExplorationConfig, repeats: int) -> None:
-    predictor = make_predictor("classical")
+def bench_learned(world, repeats: int) -> None:
+    """The learned ensemble on the whole map: one member on one thread, all four on two."""
+    import torch
+
+    from mapex.prediction.learned import LearnedEnsemble
+
+    observed = explored_state(world, ExplorationConfig(), steps=300).observed
+    predictor = LearnedEnsemble()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    one = median_ms(lambda: predictor.predict_members(observed, (0,)), repeats)
+    report("one member, whole map, 1 thread", one)
+    torch.set_num_threads(2)
+    four = median_ms(lambda: predictor.predict_members(observed, range(4)), repeats)
+    report("four members, whole map, 2 threads", four)
+    torch.set_num_threads(threads)
+
+
+def bench_episode(world, config: ExplorationConfig, repeats: int, predictor_name: str) -> None:
+    """A whole `nearest` episode as `python -m mapex run` runs it; the predictor only serves
+    the IoU/TU metrics (G's whole-map prediction every 50 steps)."""
+    predictor = make_predictor(predictor_name)
     times = []
     for _ in range(repeats):
         result = run_episode(world, "nearest", predictor, 0, 0, config)
         times.append(result.wall_time_s * 1e3)
+    name = "nearest episode"  # the target line (metrics with the classical predictor)
+    if predictor_name != "classical":
+        name = f"nearest episode, {predictor_name}"
     report(
-        "nearest episode",
+        name,
         statistics.median(times),
-        f"({config.steps} steps incl. metrics, median of {repeats}; "
+        f"({config.steps} steps incl. metrics with '{predictor_name}', median of {repeats}; "
         f"{statistics.median(times) / config.steps:.1f} ms/step)",
     )
 
@@ -176,8 +201,10 @@ def main(argv: list[str] | None = None) -> int:
     bench_scan(world, config, args.repeats)
     bench_scoring(world, config, args.repeats)
     bench_astar(world, config, max(args.repeats // 5, 3))
+    bench_learned(world, max(args.repeats // 10, 3))
     if args.episodes > 0:
-        bench_episode(world, config, args.episodes)
+        bench_episode(world, config, args.episodes, "classical")
+        bench_episode(world, config, args.episodes, DEFAULT_PREDICTOR)
     return 0
 
 

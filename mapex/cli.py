@@ -10,7 +10,8 @@ from tqdm import tqdm
 
 from mapex.config import ConfigError, ExplorationConfig, apply_overrides
 from mapex.methods import METHODS
-from mapex.prediction import PREDICTORS, make_predictor
+from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
+from mapex.prediction.weights import WeightsError
 from mapex.worlds import DEFAULT_WORLD, WorldError, load_world
 
 DEFAULT_RESULTS_DIR = Path("results")
@@ -39,9 +40,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument(
         "--predictor",
-        default="classical",
+        default=DEFAULT_PREDICTOR,
         choices=sorted(PREDICTORS),
-        help="map predictor ensemble (also used for the IoU/TU metrics); default: %(default)s",
+        help="map predictor ensemble: 'lama' (the learned LaMa-style ensemble shipped with the "
+        "package) or 'classical' (OpenCV inpainting); also used for the IoU/TU metrics; "
+        "default: %(default)s",
     )
     run.add_argument("--steps", type=int, default=1000, help="time budget T; default: %(default)s")
     run.add_argument(
@@ -106,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return run_command(args)
-    except (WorldError, ConfigError, OSError) as error:
+    except (WorldError, ConfigError, WeightsError, OSError) as error:
         print(f"mapex: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

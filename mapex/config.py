@@ -78,6 +78,41 @@ class UpenConfig:
 
 
 @dataclass(frozen=True)
+class NetworkConfig:
+    """Size of the LaMa-style generator (mapex/prediction/network.py)."""
+
+    channels: int = 64
+    n_blocks: int = 4  # FFC residual blocks
+    downscale: int = 8  # the FFC trunk works at 1/downscale resolution (pixel unshuffle)
+    global_ratio: float = 0.75  # share of channels in the spectral (global) branch
+    refine_channels: int = 16  # full-resolution refinement of the upsampled logits
+
+
+@dataclass(frozen=True)
+class PredictorTrainingConfig:
+    """Data and schedule of `python -m mapex.prediction.train` (SPEC §4)."""
+
+    procedural_worlds: int = 48  # generated:<first_procedural_seed + i>
+    first_procedural_seed: int = 1000
+    snapshot_methods: tuple[str, ...] = ("nearest", "observed_map")
+    starts_per_world: int = 2  # procedural plans
+    kth_starts_per_world: int = 4
+    kth_share: float = 0.3  # share of training crops taken from KTH snapshots (if any)
+    snapshot_steps: int = 1000
+    snapshot_every_steps: int = 50
+    crop_cells: int = 256
+    frontier_share: float = 0.75  # crops centred near a frontier, the rest anywhere
+    batch_size: int = 8
+    main_steps: int = 2000  # G, on all data
+    member_steps: int = 1000  # G_1..G_3, each on a third of the worlds
+    learning_rate: float = 2e-3
+    weight_decay: float = 1e-4
+    wall_weight: float = 2.0  # BCE weight of wall cells (walls are the rarer class)
+    checkpoint_every_steps: int = 100
+    seed: int = 0
+
+
+@dataclass(frozen=True)
 class MetricsConfig:
     """Metrics of SPEC §6."""
 
@@ -182,6 +217,18 @@ class ClassicalPredictorConfig:
             method="telea", radius_cells=1, scale=4, band_cells=6.0, prior=0.15, wall_level=0.3
         ),
     )
+
+
+@dataclass(frozen=True)
+class ServicesConfig:
+    """Wire limits and Zenoh defaults of the distributed simulator (services/, DESIGN.md)."""
+
+    max_message_bytes: int = 32 * 2**20  # encoded payload cap, checked before unpacking
+    max_decoded_bytes: int = 128 * 2**20  # cap on a message's decompressed array bytes
+    compress_threshold_bytes: int = 4096  # arrays larger than this travel zlib-compressed
+    zlib_level: int = 1  # fastest level: maps are mostly runs of one code
+    hub_endpoint: str = "tcp/127.0.0.1:7447"  # well-known loopback endpoint served by services.up
+    ephemeral_listen_endpoint: str = "tcp/127.0.0.1:0"  # default listener: loopback, any free port
 
 
 @dataclass(frozen=True)

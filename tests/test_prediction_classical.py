@@ -188,8 +188,8 @@ def test_registry_makes_the_classical_predictor() -> None:
 
 
 def test_registry_rejects_unknown_names() -> None:
-    with pytest.raises(ValueError, match=r"unknown predictor 'lama' \(choose from: classical"):
-        make_predictor("lama")
+    with pytest.raises(ValueError, match=r"unknown predictor 'oracle' \(choose from: classical"):
+        make_predictor("oracle")
 
 
 @pytest.mark.parametrize(

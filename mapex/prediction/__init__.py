@@ -14,7 +14,9 @@ from mapex.prediction.base import Predictor
 
 PREDICTORS: dict[str, str] = {
     "classical": "mapex.prediction.classical:ClassicalInpaintingEnsemble",
+    "lama": "mapex.prediction.learned:LearnedEnsemble",
 }
+DEFAULT_PREDICTOR = "lama"
 
 
 def make_predictor(name: str, **kwargs: Any) -> Predictor:

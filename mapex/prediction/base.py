@@ -18,6 +18,7 @@ import numpy as np
 from mapex.grid import UNKNOWN, observed_to_probability
 
 Region = tuple[int, int, int, int]  # row_start, row_stop, col_start, col_stop (slice bounds)
+MEMBER_NAMES = ("g", "g1", "g2", "g3")  # ensemble members by index; member 0 is the main model G
 
 
 @dataclass(frozen=True)

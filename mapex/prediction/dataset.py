@@ -1,0 +1,187 @@
+"""Training data for the map predictor: observation snapshots paired with ground truth.
+
+Snapshots are what the predictor sees in use: observed maps O_t taken while the
+exploration core explores a world (several methods and start poses, many time
+steps). Training samples are random crops of them, centred near frontiers most of
+the time, with flips and 90-degree rotations.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapex.config import ExplorationConfig, MetricsConfig, PredictorTrainingConfig
+from mapex.explorer import Explorer
+from mapex.frontiers import frontier_cells
+from mapex.grid import UNKNOWN
+from mapex.methods import make_method
+from mapex.metrics import building_footprint
+from mapex.simulator import Simulator
+from mapex.worlds import World, load_world, start_poses
+
+# Maps that share buildings with the held-back test maps (SPEC §1): never train on them.
+VALIDATION_ONLY_MAPS = ("50037764_PLAN1", "50052748")
+
+
+@dataclass
+class SnapshotSet:
+    """Snapshots of explorations: `observed[i]` was taken in world `world_of[i]`."""
+
+    worlds: list[World]
+    observed: list[np.ndarray]
+    world_of: np.ndarray  # int (n,)
+
+    def subset(self, keep: np.ndarray) -> SnapshotSet:
+        """The snapshots where `keep` (bool (n,)) is True."""
+        indices = np.flatnonzero(keep)
+        return SnapshotSet(self.worlds, [self.observed[i] for i in indices], self.world_of[indices])
+
+
+def is_procedural(world: World) -> bool:
+    return world.name.startswith("generated:")
+
+
+def training_world_specs(config: PredictorTrainingConfig, kth_dirs: list[str]) -> list[str]:
+    """World specs to explore: procedural plans, then the allowed KTH training maps."""
+    for directory in kth_dirs:
+        if any(directory.rstrip("/").endswith(name) for name in VALIDATION_ONLY_MAPS):
+            raise ValueError(f"{directory} is a validation-only map (SPEC §1): never train on it")
+    first = config.first_procedural_seed
+    return [f"generated:{seed}" for seed in range(first, first + config.procedural_worlds)] + list(
+        kth_dirs
+    )
+
+
+def snapshots_at(
+    world: World, method: str, start: tuple[int, int], times: list[int], seed: int = 0
+) -> tuple[dict[int, np.ndarray], int | None]:
+    """Observed maps O_t at each step t in `times` of one exploration, and the step at which
+    it ended early (None if it did not). After an early end the map no longer changes, so
+    later times get the final map."""
+    exploration = ExplorationConfig()
+    simulator = Simulator(world, [start], exploration.sensor, exploration.motion)
+    explorer = Explorer(world.shape, make_method(method, exploration), None, exploration, seed)
+    explorer.observe(simulator.scan(0))
+    wanted, snapshots, finished_at = set(times), {}, None
+    for t in range(max(times) + 1):
+        if t in wanted:
+            snapshots[t] = explorer.observed.copy()
+        motion = explorer.next_motion(t) if finished_at is None else None
+        if motion is None:
+            finished_at = t if finished_at is None else finished_at
+            continue
+        explorer.observe(simulator.step(0, motion))
+    return snapshots, finished_at
+
+
+def explore_snapshots(spec: str, config: PredictorTrainingConfig) -> list[np.ndarray]:
+    """Observed maps every `snapshot_every_steps` steps of explorations of world `spec`
+    (until an exploration ends, so no map is repeated)."""
+    world = load_world(spec)
+    starts = start_poses(world, ExplorationConfig().world.start_clearance_cells)
+    n_starts = config.starts_per_world if is_procedural(world) else config.kth_starts_per_world
+    every = config.snapshot_every_steps
+    times = list(range(every // 2, config.snapshot_steps, every))
+    collected = []
+    for run, (method, start) in enumerate(
+        (m, s) for m in config.snapshot_methods for s in starts[:n_starts]
+    ):
+        snapshots, finished_at = snapshots_at(world, method, start, times, seed=run)
+        end = config.snapshot_steps if finished_at is None else finished_at
+        collected += [snapshots[t] for t in times if t <= end]
+    return collected
+
+
+def collect_snapshots(
+    specs: list[str], config: PredictorTrainingConfig, processes: int = 2
+) -> SnapshotSet:
+    """Explore every world (in `processes` spawned processes) and gather the snapshots."""
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(processes) as pool:
+        per_world = pool.starmap(explore_snapshots, [(spec, config) for spec in specs])
+    worlds = [load_world(spec) for spec in specs]
+    observed = [snapshot for snapshots in per_world for snapshot in snapshots]
+    world_of = np.concatenate(
+        [np.full(len(snapshots), i, dtype=np.int64) for i, snapshots in enumerate(per_world)]
+    )
+    return SnapshotSet(worlds, observed, world_of)
+
+
+class CropSampler:
+    """Random training crops (input one-hot source, target walls, loss mask) from snapshots."""
+
+    def __init__(
+        self, snapshots: SnapshotSet, crop_cells: int, frontier_share: float, kth_share: float
+    ) -> None:
+        self.snapshots = snapshots
+        self.crop = crop_cells
+        self.frontier_share = frontier_share
+        self.probabilities = snapshot_probabilities(snapshots, kth_share)
+        margin = MetricsConfig().footprint_margin_cells
+        self.footprints = [building_footprint(w.valid_space, margin) for w in snapshots.worlds]
+
+    def sample(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One crop: observed codes (c, c) uint8, walls (c, c) float32, loss mask (c, c) float32.
+
+        The loss covers unknown cells inside the building footprint; padding beyond the
+        map is unknown and outside the loss.
+        """
+        index = int(rng.choice(len(self.snapshots.observed), p=self.probabilities))
+        observed = self.snapshots.observed[index]
+        world_index = int(self.snapshots.world_of[index])
+        world = self.snapshots.worlds[world_index]
+        row, col = self._centre(observed, rng)
+        window = self._window(observed.shape, row, col)
+        crop_observed = self._cut(observed, window, UNKNOWN)
+        walls = self._cut(world.occupancy, window, False).astype(np.float32)
+        inside = self._cut(self.footprints[world_index], window, False)
+        mask = (inside & (crop_observed == UNKNOWN)).astype(np.float32)
+        return augment(rng, crop_observed, walls, mask)
+
+    def _centre(self, observed: np.ndarray, rng: np.random.Generator) -> tuple[int, int]:
+        """A frontier cell (jittered by up to a quarter crop) or, sometimes, any cell."""
+        if rng.random() < self.frontier_share:
+            cells = np.argwhere(frontier_cells(observed))
+            if len(cells):
+                jitter = rng.integers(-self.crop // 4, self.crop // 4 + 1, size=2)
+                row, col = cells[rng.integers(len(cells))] + jitter
+                return int(row), int(col)
+        return int(rng.integers(observed.shape[0])), int(rng.integers(observed.shape[1]))
+
+    def _window(self, shape: tuple[int, int], row: int, col: int) -> tuple[int, int]:
+        """Top-left corner of a crop around (row, col), kept on the map where it fits."""
+        half = self.crop // 2
+        top = int(np.clip(row - half, min(0, shape[0] - self.crop), max(shape[0] - self.crop, 0)))
+        left = int(np.clip(col - half, min(0, shape[1] - self.crop), max(shape[1] - self.crop, 0)))
+        return top, left
+
+    def _cut(self, array: np.ndarray, corner: tuple[int, int], fill) -> np.ndarray:
+        out = np.full((self.crop, self.crop), fill, dtype=array.dtype)
+        top, left = corner
+        r0, c0 = max(top, 0), max(left, 0)
+        r1, c1 = min(top + self.crop, array.shape[0]), min(left + self.crop, array.shape[1])
+        out[r0 - top : r1 - top, c0 - left : c1 - left] = array[r0:r1, c0:c1]
+        return out
+
+
+def snapshot_probabilities(snapshots: SnapshotSet, kth_share: float) -> np.ndarray:
+    """Sampling probability per snapshot: KTH snapshots share `kth_share`, procedural the rest."""
+    kth_world = np.array([not is_procedural(w) for w in snapshots.worlds])
+    is_kth = kth_world[snapshots.world_of]
+    if is_kth.all() or not is_kth.any():
+        return np.full(len(is_kth), 1.0 / len(is_kth))
+    return np.where(is_kth, kth_share / is_kth.sum(), (1.0 - kth_share) / (~is_kth).sum())
+
+
+def augment(rng: np.random.Generator, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The same random flip and 90-degree rotation applied to every array."""
+    turns = int(rng.integers(4))
+    flip = bool(rng.integers(2))
+    out = []
+    for array in arrays:
+        array = np.rot90(array, turns)
+        out.append(np.ascontiguousarray(array[:, ::-1] if flip else array))
+    return tuple(out)

@@ -1,0 +1,49 @@
+"""The learned ensemble: G and G_1..G_3, LaMa-style generators trained by this project.
+
+The weights ship in `mapex/prediction/weights/` (made by `python -m
+mapex.prediction.train`); they load on CPU with no GPU present and use a GPU when
+asked. Torch runs with `threads` CPU threads (all cores when alone on the machine,
+one per worker when several share it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mapex.prediction.base import Predictor
+from mapex.prediction.network import encode_observed
+from mapex.prediction.weights import MEMBER_NAMES, WEIGHTS_DIR, load_member
+
+
+class LearnedEnsemble(Predictor):
+    """Four trained generators; member 0 is G."""
+
+    name = "lama"
+
+    def __init__(
+        self,
+        weights_dir: Path = WEIGHTS_DIR,
+        device: str = "cpu",
+        threads: int | None = None,
+        members: Sequence[str] = MEMBER_NAMES,
+    ) -> None:
+        if threads is not None:
+            torch.set_num_threads(threads)
+        self.device = torch.device(device)
+        self.models = [
+            load_member(Path(weights_dir) / f"{name}.pt", self.device) for name in members
+        ]
+        self.n_members = len(self.models)
+
+    def predict_members(self, observed: np.ndarray, members: Sequence[int]) -> np.ndarray:
+        """Wall probabilities float32 (len(members), rows, cols) of the chosen members."""
+        if observed.size == 0:
+            return np.zeros((len(members), *observed.shape), dtype=np.float32)
+        inputs = torch.from_numpy(encode_observed(observed))[None].to(self.device)
+        with torch.inference_mode():
+            outputs = [torch.sigmoid(self.models[k](inputs))[0, 0] for k in members]
+        return torch.stack(outputs).float().cpu().numpy()

@@ -1,0 +1,147 @@
+"""A LaMa-style inpainting generator sized for CPU inference.
+
+LaMa (Suvorov et al. 2022) inpaints with *fast Fourier convolutions* (FFC): part of
+every layer's channels is transformed in the frequency domain, so each block sees
+the whole image at once. That global receptive field is what lets a network
+continue a corridor or a row of rooms far into unknown space.
+
+The trunk works at 1/`downscale` resolution: the observed map is folded into
+channels (pixel unshuffle), passes a stem convolution and `n_blocks` FFC residual
+blocks and is unfolded back (pixel shuffle) to one logit per cell; a small
+full-resolution refinement then aligns those logits with the observed walls. Any map
+size is accepted: it is padded to a multiple of `downscale` and cropped back.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from mapex.config import NetworkConfig
+from mapex.grid import FREE, OCCUPIED, UNKNOWN
+
+INPUT_CHANNELS = 3  # free, occupied, unknown (one-hot of the observed codes)
+
+
+def encode_observed(observed: np.ndarray) -> np.ndarray:
+    """Observed codes (rows, cols) -> float32 one-hot (3, rows, cols): free, occupied, unknown."""
+    return np.stack([observed == FREE, observed == OCCUPIED, observed == UNKNOWN]).astype(
+        np.float32
+    )
+
+
+class FourierUnit(nn.Module):
+    """1x1 convolution in the 2-D frequency domain (real and imaginary parts as channels)."""
+
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.conv = nn.Conv2d(2 * channels, 2 * channels, 1, bias=False)
+        self.norm = nn.BatchNorm2d(2 * channels)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        rows, cols = x.shape[-2:]
+        spectrum = torch.fft.rfft2(x.float(), norm="ortho")
+        stacked = torch.cat([spectrum.real, spectrum.imag], dim=1)
+        stacked = F.relu(self.norm(self.conv(stacked.to(x.dtype))))
+        real, imag = stacked.float().chunk(2, dim=1)
+        out = torch.fft.irfft2(torch.complex(real, imag), s=(rows, cols), norm="ortho")
+        return out.to(x.dtype)
+
+
+class SpectralTransform(nn.Module):
+    """The global branch of an FFC: squeeze, Fourier unit, residual, expand."""
+
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        hidden = max(channels // 2, 1)
+        self.squeeze = nn.Sequential(
+            nn.Conv2d(channels, hidden, 1, bias=False), nn.BatchNorm2d(hidden), nn.ReLU()
+        )
+        self.fourier = FourierUnit(hidden)
+        self.expand = nn.Conv2d(hidden, channels, 1, bias=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        squeezed = self.squeeze(x)
+        return self.expand(squeezed + self.fourier(squeezed))
+
+
+class FastFourierConv(nn.Module):
+    """FFC: local (3x3) and global (spectral) channel groups exchanging information."""
+
+    def __init__(self, channels: int, global_ratio: float) -> None:
+        super().__init__()
+        self.n_global = int(round(channels * global_ratio))
+        self.n_local = channels - self.n_global
+        n_local, n_global = self.n_local, self.n_global
+        self.local_to_local = nn.Conv2d(n_local, n_local, 3, padding=1, bias=False)
+        self.local_to_global = nn.Conv2d(n_local, n_global, 3, padding=1, bias=False)
+        self.global_to_local = nn.Conv2d(n_global, n_local, 3, padding=1, bias=False)
+        self.global_to_global = SpectralTransform(n_global)
+        self.norm_local = nn.BatchNorm2d(n_local)
+        self.norm_global = nn.BatchNorm2d(n_global)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x_local, x_global = x.split([self.n_local, self.n_global], dim=1)
+        out_local = self.local_to_local(x_local) + self.global_to_local(x_global)
+        out_global = self.local_to_global(x_local) + self.global_to_global(x_global)
+        return torch.cat(
+            [F.relu(self.norm_local(out_local)), F.relu(self.norm_global(out_global))], dim=1
+        )
+
+
+class FfcResidualBlock(nn.Module):
+    """Two FFCs with a skip connection, as in LaMa's generator."""
+
+    def __init__(self, channels: int, global_ratio: float) -> None:
+        super().__init__()
+        self.first = FastFourierConv(channels, global_ratio)
+        self.second = FastFourierConv(channels, global_ratio)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.second(self.first(x))
+
+
+class LamaGenerator(nn.Module):
+    """Observed map (one-hot, 3 channels) -> wall logit per cell, at any map size."""
+
+    def __init__(self, config: NetworkConfig) -> None:
+        super().__init__()
+        self.config = config
+        factor, channels = config.downscale, config.channels
+        folded = INPUT_CHANNELS * factor * factor
+        self.stem = nn.Sequential(
+            nn.PixelUnshuffle(factor),
+            nn.Conv2d(folded, channels, 3, padding=1, bias=False),
+            nn.BatchNorm2d(channels),
+            nn.ReLU(),
+        )
+        self.blocks = nn.Sequential(
+            *[FfcResidualBlock(channels, config.global_ratio) for _ in range(config.n_blocks)]
+        )
+        self.head = nn.Sequential(
+            nn.Conv2d(channels, channels, 3, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(channels, factor * factor, 1),
+            nn.PixelShuffle(factor),
+        )
+        refine = config.refine_channels
+        self.refine = nn.Sequential(
+            nn.Conv2d(INPUT_CHANNELS + 1, refine, 3, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(refine, 1, 3, padding=1),
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """float (batch, 3, rows, cols) -> wall logits (batch, 1, rows, cols)."""
+        rows, cols = x.shape[-2:]
+        factor = self.config.downscale
+        pad_rows, pad_cols = (-rows) % factor, (-cols) % factor
+        if pad_rows or pad_cols:
+            x = F.pad(x, (0, pad_cols, 0, pad_rows))
+            x[:, 2, rows:, :] = 1.0  # padding is unknown space
+            x[:, 2, :, cols:] = 1.0
+        coarse = self.head(self.blocks(self.stem(x)))
+        logits = coarse + self.refine(torch.cat([coarse, x], dim=1))
+        return logits[..., :rows, :cols]

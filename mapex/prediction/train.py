@@ -1,0 +1,208 @@
+"""`python -m mapex.prediction.train`: train the LaMa-style ensemble and write its weights.
+
+G is trained on every snapshot; G_1..G_3 each on the snapshots of a disjoint third
+of the worlds (SPEC §4). Snapshots come from exploring procedural floor plans and
+the two KTH maps allowed for training. Checkpoints are written as training goes,
+so an interrupted run resumes with `--resume`. The final weights (float16) go to
+`mapex/prediction/weights/` by default, where the package loads them from.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+from tqdm import tqdm
+
+from mapex.config import ConfigError, NetworkConfig, PredictorTrainingConfig, apply_overrides
+from mapex.prediction.dataset import (
+    CropSampler,
+    SnapshotSet,
+    collect_snapshots,
+    training_world_specs,
+)
+from mapex.prediction.network import LamaGenerator, encode_observed
+from mapex.prediction.weights import MEMBER_NAMES, WEIGHTS_DIR, save_weights
+from mapex.worlds import WorldError
+
+DEFAULT_KTH_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "kth_dev"
+TRAINING_KTH_MAPS = ("50015847", "50015848")
+
+
+def member_snapshots(snapshots: SnapshotSet, member: int) -> SnapshotSet:
+    """G (member 0) sees every snapshot; G_k sees the worlds whose index is k - 1 modulo 3."""
+    if member == 0:
+        return snapshots
+    return snapshots.subset(snapshots.world_of % 3 == member - 1)
+
+
+def make_batch(
+    sampler: CropSampler, rng: np.random.Generator, size: int, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Inputs (b, 3, c, c), wall targets (b, 1, c, c) and loss masks (b, 1, c, c)."""
+    crops = [sampler.sample(rng) for _ in range(size)]
+    inputs = np.stack([encode_observed(observed) for observed, _, _ in crops])
+    walls = np.stack([w for _, w, _ in crops])[:, None]
+    masks = np.stack([m for _, _, m in crops])[:, None]
+    return tuple(torch.from_numpy(a).to(device) for a in (inputs, walls, masks))
+
+
+def masked_loss(logits: torch.Tensor, walls: torch.Tensor, mask: torch.Tensor, wall_weight: float):
+    """Binary cross-entropy over the masked cells, walls weighted by `wall_weight`."""
+    weights = mask * (1.0 + (wall_weight - 1.0) * walls)
+    losses = F.binary_cross_entropy_with_logits(logits, walls, reduction="none")
+    return (losses * weights).sum() / weights.sum().clamp_min(1.0)
+
+
+def train_member(
+    member: int,
+    snapshots: SnapshotSet,
+    config: PredictorTrainingConfig,
+    network: NetworkConfig,
+    device: torch.device,
+    out_dir: Path,
+    resume: bool,
+) -> Path:
+    """Train one member with checkpoints; write its float16 weights; return their path."""
+    name = MEMBER_NAMES[member]
+    steps = config.main_steps if member == 0 else config.member_steps
+    data = member_snapshots(snapshots, member)
+    torch.manual_seed(config.seed + member)
+    rng = np.random.default_rng(config.seed + member)
+    model = LamaGenerator(network).to(device)
+    optimizer = torch.optim.AdamW(
+        model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
+    )
+    schedule = torch.optim.lr_scheduler.OneCycleLR(
+        optimizer, max_lr=config.learning_rate, total_steps=steps, pct_start=0.1
+    )
+    checkpoint = out_dir / "checkpoints" / f"{name}.ckpt"
+    start, elapsed = 0, 0.0
+    if resume and checkpoint.exists():
+        state = torch.load(checkpoint, map_location=device, weights_only=False)
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        schedule.load_state_dict(state["schedule"])
+        rng.bit_generator.state = state["numpy_rng"]
+        torch.set_rng_state(state["torch_rng"])
+        start, elapsed = state["step"], state["elapsed_s"]
+    sampler = CropSampler(data, config.crop_cells, config.frontier_share, config.kth_share)
+    model.train()
+    began = time.perf_counter() - elapsed
+    bar = tqdm(range(start, steps), initial=start, total=steps, desc=f"train {name}", unit="step")
+    for step in bar:
+        inputs, walls, masks = make_batch(sampler, rng, config.batch_size, device)
+        loss = masked_loss(model(inputs), walls, masks, config.wall_weight)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        schedule.step()
+        bar.set_postfix(loss=f"{loss.item():.4f}")
+        done = step + 1
+        if done % config.checkpoint_every_steps == 0 or done == steps:
+            _save_checkpoint(checkpoint, model, optimizer, schedule, rng, done, began)
+    metadata = {
+        "member": name,
+        "steps": steps,
+        "snapshots": len(data.observed),
+        "worlds": sorted({data.worlds[i].name for i in np.unique(data.world_of)}),
+        "training_config": dataclasses.asdict(config),
+        "device": _device_name(device),
+        "training_wall_time_s": round(time.perf_counter() - began, 1),
+    }
+    return save_weights(out_dir / f"{name}.pt", model, metadata)
+
+
+def _save_checkpoint(path, model, optimizer, schedule, rng, step: int, began: float) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {
+        "model": model.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "schedule": schedule.state_dict(),
+        "numpy_rng": rng.bit_generator.state,
+        "torch_rng": torch.get_rng_state(),
+        "step": step,
+        "elapsed_s": time.perf_counter() - began,
+    }
+    staging = path.with_suffix(".tmp")
+    torch.save(state, staging)
+    staging.replace(path)
+
+
+def _device_name(device: torch.device) -> str:
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    return f"cpu: {platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m mapex.prediction.train", description=__doc__)
+    parser.add_argument("--members", default=",".join(MEMBER_NAMES), help="default: %(default)s")
+    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    parser.add_argument("--out", type=Path, default=WEIGHTS_DIR, help="default: %(default)s")
+    parser.add_argument(
+        "--kth-dir",
+        type=Path,
+        default=DEFAULT_KTH_DIR,
+        help="folder holding the KTH training maps 50015847 and 50015848 (default: %(default)s)",
+    )
+    parser.add_argument("--no-kth", action="store_true", help="train on procedural plans only")
+    parser.add_argument("--resume", action="store_true", help="continue from the checkpoints")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override a training field, e.g. main_steps=500 (see PredictorTrainingConfig)",
+    )
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        config = apply_overrides(PredictorTrainingConfig(), args.overrides)
+        members = [MEMBER_NAMES.index(name) for name in _member_names(args.members)]
+        device = _device(args.device)
+        if args.threads:
+            torch.set_num_threads(args.threads)
+        kth_dirs = [] if args.no_kth else [str(args.kth_dir / m) for m in TRAINING_KTH_MAPS]
+        specs = training_world_specs(config, kth_dirs)
+        print(f"collecting snapshots from {len(specs)} worlds ...", file=sys.stderr)
+        snapshots = collect_snapshots(specs, config)
+        print(f"{len(snapshots.observed)} snapshots", file=sys.stderr)
+        for member in members:
+            network = NetworkConfig()
+            path = train_member(member, snapshots, config, network, device, args.out, args.resume)
+            print(f"wrote {path}")
+    except (ConfigError, WorldError, ValueError) as error:
+        print(f"mapex.prediction.train: error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _member_names(text: str) -> list[str]:
+    names = [name.strip() for name in text.split(",") if name.strip()]
+    unknown = [name for name in names if name not in MEMBER_NAMES]
+    if unknown or not names:
+        raise ValueError(f"--members: choose from {', '.join(MEMBER_NAMES)} (got '{text}')")
+    return names
+
+
+def _device(name: str) -> torch.device:
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda: no CUDA device is available")
+    return torch.device(name)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,245 @@
+"""The message-agnostic wire format: a msgpack map per message, numpy arrays inside it.
+
+Every payload is a msgpack map {"schema": SCHEMA_VERSION, "type": <name>, <fields>...}. An
+array travels as {"dtype": str, "shape": [int, ...], "zlib": bool, "data": bytes} in
+little-endian byte order, zlib-compressed when larger than `compress_threshold_bytes` (and
+only when that makes it smaller). Only the dtypes of `ARRAY_DTYPES` are accepted.
+
+Decoding trusts nothing: the payload size is checked before unpacking, every field's type,
+every array's dtype, rank and byte length, and the decompressed size is capped (a zlib bomb
+stops at the size its shape declares). Any violation raises `ProtocolError` with a one-line
+message. Never pickle.
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from mapex.config import ServicesConfig
+
+SCHEMA_VERSION = 1
+ARRAY_DTYPES = frozenset(
+    {"uint8", "uint16", "int16", "int32", "int64", "float32", "float64", "bool"}
+)
+ARRAY_KEYS = frozenset({"dtype", "shape", "zlib", "data"})
+ENVELOPE_KEYS = ("schema", "type")
+DEFAULT_SERVICES = ServicesConfig()
+QUANTISATION_LEVELS = 255  # uint8 probability q stands for q / 255
+
+Payload = bytes | bytearray | memoryview
+
+
+class ProtocolError(ValueError):
+    """A payload or key that breaks the wire protocol; the message is one line."""
+
+
+def quantise_probability(probability: np.ndarray) -> np.ndarray:
+    """Probabilities in [0, 1] (any float array) -> uint8 round(p * 255).
+
+    `dequantise_probability` brings them back within 1/510 (half a level). Values outside
+    [0, 1] or not finite raise ValueError: they are a bug upstream, not noise to clip.
+    """
+    values = np.asarray(probability, dtype=np.float32)
+    if values.size and not (np.isfinite(values).all() and values.min() >= 0 and values.max() <= 1):
+        raise ValueError("probabilities to quantise must be finite and within [0, 1]")
+    return np.rint(values * np.float32(QUANTISATION_LEVELS)).astype(np.uint8)
+
+
+def dequantise_probability(quantised: np.ndarray) -> np.ndarray:
+    """uint8 levels of `quantise_probability` -> float32 probabilities q / 255."""
+    if quantised.dtype != np.uint8:
+        raise ValueError(f"quantised probabilities must be uint8, got {quantised.dtype}")
+    return quantised.astype(np.float32) / np.float32(QUANTISATION_LEVELS)
+
+
+def encode_array(array: np.ndarray, config: ServicesConfig = DEFAULT_SERVICES) -> dict[str, Any]:
+    """A numpy array as its wire map (little-endian, compressed above the threshold)."""
+    if array.dtype.name not in ARRAY_DTYPES:
+        raise ProtocolError(f"dtype {array.dtype} is not sendable (allowed: {_allowed()})")
+    little = np.ascontiguousarray(array, dtype=array.dtype.newbyteorder("<"))
+    data = little.tobytes()
+    compressed = False
+    if len(data) > config.compress_threshold_bytes:
+        packed = zlib.compress(data, config.zlib_level)
+        if len(packed) < len(data):
+            data, compressed = packed, True
+    return {"dtype": array.dtype.name, "shape": list(array.shape), "zlib": compressed, "data": data}
+
+
+def pack_message(
+    type_name: str, fields: dict[str, Any], config: ServicesConfig = DEFAULT_SERVICES
+) -> bytes:
+    """The msgpack payload of message `type_name` with `fields` (arrays already encoded)."""
+    clash = set(fields) & set(ENVELOPE_KEYS)
+    if clash:
+        raise ProtocolError(f"{type_name} message: field names {sorted(clash)} are reserved")
+    payload = msgpack.packb(
+        {"schema": SCHEMA_VERSION, "type": type_name, **fields}, use_bin_type=True
+    )
+    if len(payload) > config.max_message_bytes:
+        raise ProtocolError(
+            f"{type_name} message of {len(payload)} bytes exceeds the "
+            f"{config.max_message_bytes}-byte limit"
+        )
+    return payload
+
+
+def unpack_message(payload: Payload, config: ServicesConfig = DEFAULT_SERVICES) -> FieldReader:
+    """Check size, msgpack, envelope and schema version; return a reader over the fields."""
+    if not isinstance(payload, bytes | bytearray | memoryview):
+        raise ProtocolError(f"payload must be bytes, got {type(payload).__name__}")
+    size = memoryview(payload).nbytes
+    if size > config.max_message_bytes:
+        raise ProtocolError(
+            f"payload of {size} bytes exceeds the {config.max_message_bytes}-byte limit"
+        )
+    try:
+        document = msgpack.unpackb(payload, raw=False, strict_map_key=True)
+    except (ValueError, TypeError, msgpack.UnpackException) as error:
+        raise ProtocolError(f"payload is not valid msgpack ({type(error).__name__})") from None
+    if not isinstance(document, dict):
+        raise ProtocolError(f"payload is a msgpack {type(document).__name__}, not a map")
+    schema = document.pop("schema", None)
+    if type(schema) is not int or schema != SCHEMA_VERSION:
+        raise ProtocolError(f"schema version {schema!r} is not the supported {SCHEMA_VERSION}")
+    type_name = document.pop("type", None)
+    if not isinstance(type_name, str):
+        raise ProtocolError(f"message type must be a string, got {type(type_name).__name__}")
+    return FieldReader(type_name, document, config)
+
+
+class FieldReader:
+    """Typed, checked access to the fields of one unpacked message.
+
+    Each accessor checks the wire type of one field and marks it read; `finish` rejects
+    fields nobody read. Arrays are checked against their declared dtype, rank and byte
+    length, and all of a message's arrays together may not exceed `max_decoded_bytes`.
+    Decoded arrays are read-only views of the payload (copy to modify).
+    """
+
+    def __init__(self, type_name: str, fields: dict[str, Any], config: ServicesConfig) -> None:
+        self.type_name = type_name
+        self._fields = fields
+        self._unread = set(fields)
+        self._budget_bytes = config.max_decoded_bytes
+
+    def error(self, what: str) -> ProtocolError:
+        """A ProtocolError naming this message's type."""
+        return ProtocolError(f"{self.type_name} message: {what}")
+
+    def integer(self, name: str) -> int:
+        """An int field (bool is not an int here)."""
+        return self._typed(name, int, "an integer")
+
+    def text(self, name: str) -> str:
+        """A str field."""
+        return self._typed(name, str, "a string")
+
+    def flag(self, name: str) -> bool:
+        """A bool field."""
+        return self._typed(name, bool, "a boolean")
+
+    def number(self, name: str) -> float:
+        """A float field (ints accepted)."""
+        value = self._take(name)
+        if type(value) not in (int, float):
+            raise self.error(f"field '{name}' must be a number, got {type(value).__name__}")
+        return float(value)
+
+    def optional_number(self, name: str) -> float | None:
+        """A float field that may be nil."""
+        return None if self._is_nil(name) else self.number(name)
+
+    def cell(self, name: str) -> tuple[int, int]:
+        """A (row, col) field sent as a two-integer list."""
+        value = self._take(name)
+        if not (isinstance(value, list) and len(value) == 2 and all(type(v) is int for v in value)):
+            raise self.error(f"field '{name}' must be a [row, col] pair of integers")
+        return value[0], value[1]
+
+    def optional_cell(self, name: str) -> tuple[int, int] | None:
+        """A (row, col) field that may be nil."""
+        return None if self._is_nil(name) else self.cell(name)
+
+    def array(self, name: str, dtype: str, ndim: int) -> np.ndarray:
+        """An array field of exactly `dtype` and rank `ndim`."""
+        wire = self._take(name)
+        if not isinstance(wire, dict) or set(wire) != ARRAY_KEYS:
+            raise self.error(f"field '{name}' must be an array map with keys {sorted(ARRAY_KEYS)}")
+        if wire["dtype"] != dtype:
+            raise self.error(f"array '{name}' must be {dtype}, got {wire['dtype']!r}")
+        shape = wire["shape"]
+        if not (
+            isinstance(shape, list)
+            and len(shape) == ndim
+            and all(type(n) is int and n >= 0 for n in shape)
+        ):
+            raise self.error(f"array '{name}' must have a shape of {ndim} non-negative integers")
+        if type(wire["zlib"]) is not bool or not isinstance(wire["data"], bytes):
+            raise self.error(f"array '{name}' needs a boolean 'zlib' and bytes 'data'")
+        return self._array_from_bytes(name, np.dtype(dtype), shape, wire["zlib"], wire["data"])
+
+    def finish(self) -> None:
+        """Reject fields that no accessor read."""
+        if self._unread:
+            raise self.error(f"unexpected fields {sorted(map(str, self._unread))}")
+
+    def _take(self, name: str) -> Any:
+        if name not in self._fields:
+            raise self.error(f"missing field '{name}'")
+        self._unread.discard(name)
+        return self._fields[name]
+
+    def _is_nil(self, name: str) -> bool:
+        """Whether field `name` is present and nil (then it counts as read)."""
+        if name in self._fields and self._fields[name] is None:
+            self._unread.discard(name)
+            return True
+        return False
+
+    def _typed(self, name: str, kind: type, description: str) -> Any:
+        value = self._take(name)
+        if type(value) is not kind:
+            raise self.error(f"field '{name}' must be {description}, got {type(value).__name__}")
+        return value
+
+    def _array_from_bytes(
+        self, name: str, dtype: np.dtype, shape: list[int], compressed: bool, data: bytes
+    ) -> np.ndarray:
+        expected = math.prod(shape) * dtype.itemsize
+        if expected > self._budget_bytes:
+            raise self.error(
+                f"array '{name}' declares {expected} bytes, over the decoded-size limit"
+            )
+        self._budget_bytes -= expected
+        raw = self._inflate(name, data, expected) if compressed else data
+        if len(raw) != expected:
+            raise self.error(
+                f"array '{name}' holds {len(raw)} bytes, its dtype and shape need {expected}"
+            )
+        if dtype == np.bool_ and expected and np.frombuffer(raw, np.uint8).max() > 1:
+            raise self.error(f"bool array '{name}' holds bytes other than 0 and 1")
+        little = np.frombuffer(raw, dtype=dtype.newbyteorder("<")).reshape(shape)
+        return little.astype(dtype, copy=False)
+
+    def _inflate(self, name: str, data: bytes, expected: int) -> bytes:
+        """Decompress at most expected + 1 bytes, so an oversized stream is caught cheaply."""
+        inflater = zlib.decompressobj()
+        try:
+            raw = inflater.decompress(data, expected + 1)
+        except zlib.error:
+            raise self.error(f"array '{name}' is not a valid zlib stream") from None
+        if len(raw) > expected:
+            raise self.error(f"array '{name}' decompresses to more than the {expected} bytes")
+        if not inflater.eof or inflater.unused_data:
+            raise self.error(f"array '{name}' zlib stream is truncated or has trailing bytes")
+        return raw
+
+
+def _allowed() -> str:
+    return ", ".join(sorted(ARRAY_DTYPES))

@@ -1,0 +1,614 @@
+"""Version-1 messages: what travels on the keys of `services.keys`.
+
+Messages are frozen dataclasses with `encode()` and `decode()` over the generic format of
+`services.codec`; constructing or decoding one that breaks its rules raises
+`ProtocolError` with a one-line message.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal, TypeVar
+
+import numpy as np
+
+from mapex.config import ServicesConfig
+from mapex.grid import OCCUPIED, Cell, observed_to_probability
+from mapex.sensor import Scan
+from mapex.worlds.base import World
+from services.codec import (
+    DEFAULT_SERVICES,
+    FieldReader,
+    Payload,
+    ProtocolError,
+    dequantise_probability,
+    encode_array,
+    pack_message,
+    quantise_probability,
+    unpack_message,
+)
+from services.keys import MEMBERS, is_valid_id
+
+MapKind = Literal["observed", "main", "mean", "variance"]
+MAP_KINDS = ("observed", "main", "mean", "variance")
+STATUS_STATES = ("starting", "running", "finished", "failed")
+_INT32_MAX = np.iinfo(np.int32).max
+
+M = TypeVar("M", bound="Message")
+
+
+class Message:
+    """Base of every payload: `encode()` to msgpack bytes, `decode()` back, fully checked.
+
+    A subclass names its wire `TYPE`, lists its fields in `_fields` and reads them back in
+    `_read`; value rules live in `__post_init__`, so they hold for both directions.
+    """
+
+    TYPE: ClassVar[str]
+    _REGISTRY: ClassVar[dict[str, type[Message]]] = {}
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        Message._REGISTRY[cls.TYPE] = cls
+
+    def encode(self, config: ServicesConfig = DEFAULT_SERVICES) -> bytes:
+        """The msgpack payload of this message."""
+        return pack_message(self.TYPE, self._fields(config), config)
+
+    @classmethod
+    def decode(cls: type[M], payload: Payload, config: ServicesConfig = DEFAULT_SERVICES) -> M:
+        """Parse and check a payload that must hold a message of this type."""
+        reader = unpack_message(payload, config)
+        if reader.type_name != cls.TYPE:
+            raise ProtocolError(f"expected a {cls.TYPE} message, got type {reader.type_name!r}")
+        return cls._read_all(reader)
+
+    @classmethod
+    def _read_all(cls: type[M], reader: FieldReader) -> M:
+        message = cls._read(reader)
+        reader.finish()
+        return message
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        raise NotImplementedError
+
+    @classmethod
+    def _read(cls: type[M], reader: FieldReader) -> M:
+        raise NotImplementedError
+
+
+def decode_message(
+    payload: Payload,
+    expected: tuple[type[Message], ...] | None = None,
+    config: ServicesConfig = DEFAULT_SERVICES,
+) -> Message:
+    """Decode a payload of any message type (or of one of `expected`), fully checked."""
+    reader = unpack_message(payload, config)
+    cls = Message._REGISTRY.get(reader.type_name)
+    if cls is None:
+        raise ProtocolError(f"unknown message type {reader.type_name!r}")
+    if expected is not None and cls not in expected:
+        names = ", ".join(c.TYPE for c in expected)
+        raise ProtocolError(f"expected a message of type {names}, got {cls.TYPE!r}")
+    return cls._read_all(reader)
+
+
+@dataclass(frozen=True, eq=False)
+class StepRequest(Message):
+    """Planner -> world query on `step`: drive through `cells` int32 (k, 2) in order, then scan.
+
+    k = 0 asks for a scan where the robot stands (the initial scan). The reply is a ScanReply.
+    """
+
+    TYPE: ClassVar[str] = "step_request"
+    cells: np.ndarray
+
+    def __post_init__(self) -> None:
+        _set(self, "cells", _checked_cells(self.TYPE, "cells", self.cells))
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        return {"cells": encode_array(self.cells, config)}
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> StepRequest:
+        return cls(reader.array("cells", "int32", 2))
+
+
+@dataclass(frozen=True, eq=False)
+class ScanReply(Message):
+    """World -> planner reply to a step (also published on `scan`): a `mapex.sensor.Scan`.
+
+    pose (row, col); n_cells uint16 (n_rays,); hit bool (n_rays,).
+    """
+
+    TYPE: ClassVar[str] = "scan_reply"
+    pose: Cell
+    n_cells: np.ndarray
+    hit: np.ndarray
+
+    def __post_init__(self) -> None:
+        _set(self, "pose", _checked_cell(self.TYPE, "pose", self.pose))
+        _check_array(self.TYPE, "n_cells", self.n_cells, np.uint16, 1)
+        _check_array(self.TYPE, "hit", self.hit, np.bool_, 1)
+        if self.n_cells.shape != self.hit.shape:
+            raise ProtocolError(f"{self.TYPE}: n_cells and hit must have one length")
+
+    @classmethod
+    def from_scan(cls, scan: Scan) -> ScanReply:
+        """The reply carrying `scan`."""
+        return cls(scan.pose, scan.n_cells, scan.hit)
+
+    def to_scan(self) -> Scan:
+        """The `mapex.sensor.Scan` this reply carries (arrays copied, then made read-only)."""
+        return Scan(self.pose, self.n_cells.copy(), self.hit.copy())
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        return {
+            "pose": list(self.pose),
+            "n_cells": encode_array(self.n_cells, config),
+            "hit": encode_array(self.hit, config),
+        }
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> ScanReply:
+        pose = reader.cell("pose")
+        return cls(pose, reader.array("n_cells", "uint16", 1), reader.array("hit", "bool", 1))
+
+
+@dataclass(frozen=True)
+class PoseMessage(Message):
+    """World -> anyone on `pose`: the robot's cell after step `t`."""
+
+    TYPE: ClassVar[str] = "pose"
+    t: int
+    pose: Cell
+
+    def __post_init__(self) -> None:
+        _set(self, "t", _checked_step(self.TYPE, self.t))
+        _set(self, "pose", _checked_cell(self.TYPE, "pose", self.pose))
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        return {"t": self.t, "pose": list(self.pose)}
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> PoseMessage:
+        return cls(reader.integer("t"), reader.cell("pose"))
+
+
+@dataclass(frozen=True, eq=False)
+class PredictRequest(Message):
+    """Planner -> one predictor worker: predict the unknown cells of an observed-map crop.
+
+    observed: uint8 (h, w) codes of `mapex.grid` (FREE, UNKNOWN, OCCUPIED).
+    """
+
+    TYPE: ClassVar[str] = "predict_request"
+    request_id: int
+    observed: np.ndarray
+
+    def __post_init__(self) -> None:
+        _set(self, "request_id", _checked_count(self.TYPE, "request_id", self.request_id))
+        _check_map(self.TYPE, "observed", self.observed, np.uint8)
+        _check_codes(self.TYPE, "observed", self.observed)
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        return {"request_id": self.request_id, "observed": encode_array(self.observed, config)}
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> PredictRequest:
+        return cls(reader.integer("request_id"), reader.array("observed", "uint8", 2))
+
+
+@dataclass(frozen=True, eq=False)
+class PredictReply(Message):
+    """Predictor worker -> planner: one member's occupancy probabilities for the crop.
+
+    probabilities_u8: uint8 (h, w), quantised with `quantise_probability` (p = q / 255).
+    compute_ms: the worker's compute time for this query, in milliseconds.
+    """
+
+    TYPE: ClassVar[str] = "predict_reply"
+    request_id: int
+    member: str
+    probabilities_u8: np.ndarray
+    worker_id: str
+    compute_ms: float
+
+    def __post_init__(self) -> None:
+        _set(self, "request_id", _checked_count(self.TYPE, "request_id", self.request_id))
+        if self.member not in MEMBERS:
+            raise ProtocolError(f"{self.TYPE}: member {self.member!r} is not one of {MEMBERS}")
+        _check_map(self.TYPE, "probabilities_u8", self.probabilities_u8, np.uint8)
+        if not is_valid_id(self.worker_id):
+            raise ProtocolError(f"{self.TYPE}: worker_id {self.worker_id!r} is not a valid id")
+        _set(self, "compute_ms", _checked_number(self.TYPE, "compute_ms", self.compute_ms))
+
+    @classmethod
+    def from_probabilities(
+        cls,
+        request_id: int,
+        member: str,
+        probabilities: np.ndarray,
+        worker_id: str,
+        compute_ms: float,
+    ) -> PredictReply:
+        """The reply for float `probabilities` in [0, 1] (quantised here)."""
+        return cls(request_id, member, quantise_probability(probabilities), worker_id, compute_ms)
+
+    def probabilities(self) -> np.ndarray:
+        """The probabilities as float32 (h, w), within 1/510 of what was sent."""
+        return dequantise_probability(self.probabilities_u8)
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        return {
+            "request_id": self.request_id,
+            "member": self.member,
+            "probabilities_u8": encode_array(self.probabilities_u8, config),
+            "worker_id": self.worker_id,
+            "compute_ms": self.compute_ms,
+        }
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> PredictReply:
+        return cls(
+            reader.integer("request_id"),
+            reader.text("member"),
+            reader.array("probabilities_u8", "uint8", 2),
+            reader.text("worker_id"),
+            reader.number("compute_ms"),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class MapMessage(Message):
+    """Planner -> anyone on `observed_map` and `prediction/*`: a whole map after step `t`.
+
+    map_u8: uint8 (rows, cols); for kind "observed" the codes of `mapex.grid`, otherwise
+    probabilities quantised with `quantise_probability` (the variance on the same 0..1 scale).
+    """
+
+    TYPE: ClassVar[str] = "map"
+    t: int
+    kind: MapKind
+    map_u8: np.ndarray
+
+    def __post_init__(self) -> None:
+        _set(self, "t", _checked_step(self.TYPE, self.t))
+        if self.kind not in MAP_KINDS:
+            raise ProtocolError(f"{self.TYPE}: kind {self.kind!r} is not one of {MAP_KINDS}")
+        _check_map(self.TYPE, "map_u8", self.map_u8, np.uint8)
+        if self.kind == "observed":
+            _check_codes(self.TYPE, "map_u8", self.map_u8)
+
+    @classmethod
+    def from_probabilities(cls, t: int, kind: MapKind, probabilities: np.ndarray) -> MapMessage:
+        """A prediction map (kind main, mean or variance) from float values in [0, 1]."""
+        if kind == "observed":
+            raise ValueError("an observed map travels as its uint8 codes, not probabilities")
+        return cls(t, kind, quantise_probability(probabilities))
+
+    def probabilities(self) -> np.ndarray:
+        """float32 occupancy values: code / 2 for observed maps, q / 255 otherwise."""
+        if self.kind == "observed":
+            return observed_to_probability(self.map_u8)
+        return dequantise_probability(self.map_u8)
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        return {"t": self.t, "kind": self.kind, "map_u8": encode_array(self.map_u8, config)}
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> MapMessage:
+        return cls(reader.integer("t"), reader.text("kind"), reader.array("map_u8", "uint8", 2))
+
+
+@dataclass(frozen=True, eq=False)
+class FrontiersMessage(Message):
+    """Planner -> anyone on `frontiers`: frontier points int32 (K, 2), scores float64 (K,)."""
+
+    TYPE: ClassVar[str] = "frontiers"
+    t: int
+    cells: np.ndarray
+    scores: np.ndarray
+
+    def __post_init__(self) -> None:
+        _set(self, "t", _checked_step(self.TYPE, self.t))
+        _set(self, "cells", _checked_cells(self.TYPE, "cells", self.cells))
+        _check_array(self.TYPE, "scores", self.scores, np.float64, 1)
+        if len(self.scores) != len(self.cells):
+            raise ProtocolError(f"{self.TYPE}: one score per frontier cell is needed")
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        return {
+            "t": self.t,
+            "cells": encode_array(self.cells, config),
+            "scores": encode_array(self.scores, config),
+        }
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> FrontiersMessage:
+        t, cells = reader.integer("t"), reader.array("cells", "int32", 2)
+        return cls(t, cells, reader.array("scores", "float64", 1))
+
+
+@dataclass(frozen=True)
+class GoalMessage(Message):
+    """Planner -> anyone on `goal`: the current goal cell, or None when there is none."""
+
+    TYPE: ClassVar[str] = "goal"
+    t: int
+    goal: Cell | None
+
+    def __post_init__(self) -> None:
+        _set(self, "t", _checked_step(self.TYPE, self.t))
+        if self.goal is not None:
+            _set(self, "goal", _checked_cell(self.TYPE, "goal", self.goal))
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        return {"t": self.t, "goal": None if self.goal is None else list(self.goal)}
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> GoalMessage:
+        return cls(reader.integer("t"), reader.optional_cell("goal"))
+
+
+@dataclass(frozen=True, eq=False)
+class PathMessage(Message):
+    """Planner -> anyone on `path`: the planned path int32 (k, 2) from the robot to the goal."""
+
+    TYPE: ClassVar[str] = "path"
+    t: int
+    cells: np.ndarray
+
+    def __post_init__(self) -> None:
+        _set(self, "t", _checked_step(self.TYPE, self.t))
+        _set(self, "cells", _checked_cells(self.TYPE, "cells", self.cells))
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        return {"t": self.t, "cells": encode_array(self.cells, config)}
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> PathMessage:
+        return cls(reader.integer("t"), reader.array("cells", "int32", 2))
+
+
+@dataclass(frozen=True)
+class MetricsMessage(Message):
+    """Planner -> anyone on `metrics`: SPEC §6 values at step `t`, all in [0, 1].
+
+    tu is None at steps where TU is not computed; degraded is True when this step's
+    prediction lacked members (DESIGN.md, Reliability).
+    """
+
+    TYPE: ClassVar[str] = "metrics"
+    t: int
+    coverage: float
+    iou: float
+    tu: float | None
+    degraded: bool
+
+    def __post_init__(self) -> None:
+        _set(self, "t", _checked_step(self.TYPE, self.t))
+        _set(self, "coverage", _checked_number(self.TYPE, "coverage", self.coverage, 1.0))
+        _set(self, "iou", _checked_number(self.TYPE, "iou", self.iou, 1.0))
+        if self.tu is not None:
+            _set(self, "tu", _checked_number(self.TYPE, "tu", self.tu, 1.0))
+        if not isinstance(self.degraded, bool | np.bool_):
+            raise ProtocolError(f"{self.TYPE}: degraded must be a bool")
+        _set(self, "degraded", bool(self.degraded))
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        return {
+            "t": self.t,
+            "coverage": self.coverage,
+            "iou": self.iou,
+            "tu": self.tu,
+            "degraded": self.degraded,
+        }
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> MetricsMessage:
+        return cls(
+            reader.integer("t"),
+            reader.number("coverage"),
+            reader.number("iou"),
+            reader.optional_number("tu"),
+            reader.flag("degraded"),
+        )
+
+
+@dataclass(frozen=True)
+class StatusMessage(Message):
+    """Planner -> anyone on `status`: the run's state (one of STATUS_STATES) and a detail line."""
+
+    TYPE: ClassVar[str] = "status"
+    t: int
+    state: str
+    detail: str = ""
+
+    def __post_init__(self) -> None:
+        _set(self, "t", _checked_step(self.TYPE, self.t))
+        if self.state not in STATUS_STATES:
+            raise ProtocolError(f"{self.TYPE}: state {self.state!r} is not one of {STATUS_STATES}")
+        _set(self, "detail", _one_line(self.TYPE, "detail", self.detail))
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        return {"t": self.t, "state": self.state, "detail": self.detail}
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> StatusMessage:
+        return cls(reader.integer("t"), reader.text("state"), reader.text("detail"))
+
+
+@dataclass(frozen=True, eq=False)
+class WorldInfo(Message):
+    """World -> anyone on `world_info`: map size (rows, cols), cell size, name, start cells."""
+
+    TYPE: ClassVar[str] = "world_info"
+    name: str
+    shape: tuple[int, int]
+    resolution_m: float
+    starts: np.ndarray
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name:
+            raise ProtocolError(f"{self.TYPE}: name must be a non-empty string")
+        shape = _checked_cell(self.TYPE, "shape", self.shape)
+        if min(shape) < 1:
+            raise ProtocolError(f"{self.TYPE}: shape {shape} must be positive")
+        _set(self, "shape", shape)
+        resolution = _checked_number(self.TYPE, "resolution_m", self.resolution_m)
+        if resolution <= 0:
+            raise ProtocolError(f"{self.TYPE}: resolution_m must be positive")
+        _set(self, "resolution_m", resolution)
+        starts = _checked_cells(self.TYPE, "starts", self.starts)
+        if len(starts) and (starts >= np.array(shape)).any():
+            raise ProtocolError(f"{self.TYPE}: a start cell lies outside the {shape} map")
+        _set(self, "starts", starts)
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "shape": list(self.shape),
+            "resolution_m": self.resolution_m,
+            "starts": encode_array(self.starts, config),
+        }
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> WorldInfo:
+        return cls(
+            reader.text("name"),
+            reader.cell("shape"),
+            reader.number("resolution_m"),
+            reader.array("starts", "int32", 2),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class GroundTruth(Message):
+    """World -> anyone on `ground_truth`: walls and valid space, bool (rows, cols) each."""
+
+    TYPE: ClassVar[str] = "ground_truth"
+    occupancy: np.ndarray
+    valid_space: np.ndarray
+
+    def __post_init__(self) -> None:
+        _check_map(self.TYPE, "occupancy", self.occupancy, np.bool_)
+        _check_map(self.TYPE, "valid_space", self.valid_space, np.bool_)
+        if self.occupancy.shape != self.valid_space.shape:
+            raise ProtocolError(f"{self.TYPE}: occupancy and valid_space differ in shape")
+
+    @classmethod
+    def from_world(cls, world: World) -> GroundTruth:
+        """The ground truth of `world`."""
+        return cls(world.occupancy, world.valid_space)
+
+    def to_world(self, name: str, resolution_m: float) -> World:
+        """A `World` named `name` (from WorldInfo) over copies of these maps."""
+        return World(name, self.occupancy.copy(), self.valid_space.copy(), resolution_m)
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        return {
+            "occupancy": encode_array(self.occupancy, config),
+            "valid_space": encode_array(self.valid_space, config),
+        }
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> GroundTruth:
+        return cls(reader.array("occupancy", "bool", 2), reader.array("valid_space", "bool", 2))
+
+
+@dataclass(frozen=True)
+class ErrorReply(Message):
+    """Any queryable -> querier: why a query was refused (made one line)."""
+
+    TYPE: ClassVar[str] = "error"
+    message: str
+
+    def __post_init__(self) -> None:
+        _set(self, "message", _one_line(self.TYPE, "message", self.message))
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        return {"message": self.message}
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> ErrorReply:
+        return cls(reader.text("message"))
+
+
+# ------------------------------------------------------------------------- value rule helpers
+
+
+def _set(message: Message, name: str, value: Any) -> None:
+    """Store a normalised field value on a frozen dataclass."""
+    object.__setattr__(message, name, value)
+
+
+def _checked_count(owner: str, name: str, value: Any) -> int:
+    try:
+        count = -1 if isinstance(value, bool) else operator.index(value)
+    except TypeError:
+        count = -1
+    if count < 0:
+        raise ProtocolError(f"{owner}: {name} must be a non-negative integer")
+    return count
+
+
+def _checked_step(owner: str, t: Any) -> int:
+    return _checked_count(owner, "t", t)
+
+
+def _checked_number(owner: str, name: str, value: Any, maximum: float = math.inf) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
+        raise ProtocolError(f"{owner}: {name} must be a number")
+    number = float(value)
+    if not (math.isfinite(number) and 0 <= number <= maximum):
+        raise ProtocolError(f"{owner}: {name} = {number} is outside [0, {maximum}]")
+    return number
+
+
+def _checked_cell(owner: str, name: str, cell: Any) -> tuple[int, int]:
+    try:
+        row, col = (_checked_count(owner, name, v) for v in cell)
+    except (TypeError, ValueError):
+        raise ProtocolError(f"{owner}: {name} must be two non-negative integers") from None
+    return row, col
+
+
+def _checked_cells(owner: str, name: str, cells: Any) -> np.ndarray:
+    """Integer cells (k, 2), non-negative, as int32 (an empty list is k = 0)."""
+    array = np.asarray(cells)
+    if array.size == 0:
+        array = array.reshape(0, 2).astype(np.int32)
+    if array.dtype.kind not in "iu" or array.ndim != 2 or array.shape[1] != 2:
+        raise ProtocolError(
+            f"{owner}: {name} must be integer cells (k, 2), got {array.dtype} {array.shape}"
+        )
+    if array.size and (array.min() < 0 or array.max() > _INT32_MAX):
+        raise ProtocolError(f"{owner}: {name} holds a negative or too large cell index")
+    return array.astype(np.int32, copy=False)
+
+
+def _check_array(owner: str, name: str, array: Any, dtype: type, ndim: int) -> None:
+    if not isinstance(array, np.ndarray) or array.dtype != dtype or array.ndim != ndim:
+        got = f"{array.dtype} {array.shape}" if isinstance(array, np.ndarray) else type(array)
+        wanted = f"a {ndim}-D {np.dtype(dtype)} array"
+        raise ProtocolError(f"{owner}: {name} must be {wanted}, got {got}")
+
+
+def _check_map(owner: str, name: str, array: Any, dtype: type) -> None:
+    _check_array(owner, name, array, dtype, 2)
+    if min(array.shape) < 1:
+        raise ProtocolError(f"{owner}: {name} map of shape {array.shape} is empty")
+
+
+def _check_codes(owner: str, name: str, observed: np.ndarray) -> None:
+    if observed.max() > OCCUPIED:
+        raise ProtocolError(f"{owner}: {name} holds codes other than free, unknown, occupied")
+
+
+def _one_line(owner: str, name: str, text: Any) -> str:
+    if not isinstance(text, str):
+        raise ProtocolError(f"{owner}: {name} must be a string")
+    return " ".join(text.split())

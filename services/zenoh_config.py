@@ -1,0 +1,167 @@
+"""The standard Zenoh flags of every service, turned into a `zenoh.Config`, and session opening.
+
+Default topology (no flags, one machine; no router, no multicast, loopback only):
+
+* every process is a *peer* that listens on an ephemeral loopback port
+  (`ServicesConfig.ephemeral_listen_endpoint`, tcp/127.0.0.1:0) and connects to the
+  well-known hub endpoint `ServicesConfig.hub_endpoint` (tcp/127.0.0.1:7447);
+* `python -m services.up` serves the hub: its own session listens on the hub endpoint
+  (`zenoh_config(listen=[hub])`; a session listening there does not connect to it);
+* gossip (single hop) tells the peers that met at the hub each other's loopback endpoints,
+  so they link up directly and data does not detour through the hub.
+
+A process started alone (no `services.up`) waits for the hub in the background; give one
+process `--listen tcp/127.0.0.1:7447` to make it the hub instead. `--mode router` with no
+`--listen` serves the hub as a Zenoh router (the stand-in for `zenohd`); on several machines
+processes use `--mode client --connect tcp/<router-host>:7447` (see deploy/). With
+`--config FILE` the file is the whole base configuration and only the flags given on the
+command line override it. Never fork after opening a session: spawn processes instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Literal
+
+import zenoh
+
+from mapex.config import ServicesConfig
+
+ZenohMode = Literal["peer", "client", "router"]
+MODES = ("peer", "client", "router")
+DEFAULT_SERVICES = ServicesConfig()
+
+_JSON5_MESSAGE = re.compile(r'msg: "((?:[^"\\]|\\.)*)"')
+_RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
+
+
+class ZenohConfigError(ValueError):
+    """Zenoh flags, a config file or endpoints that Zenoh rejects; the message is one line."""
+
+
+def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add --mode, --connect, --listen and --config (as in the zenoh-python examples)."""
+    group = parser.add_argument_group("zenoh")
+    group.add_argument(
+        "--mode", choices=MODES, default=None, help="Zenoh session mode (default: peer)"
+    )
+    group.add_argument(
+        "--connect",
+        metavar="ENDPOINT",
+        action="append",
+        default=None,
+        help="endpoint to connect to, repeatable (default: the loopback hub tcp/127.0.0.1:7447)",
+    )
+    group.add_argument(
+        "--listen",
+        metavar="ENDPOINT",
+        action="append",
+        default=None,
+        help="endpoint to listen on, repeatable (default: tcp/127.0.0.1:0, any loopback port)",
+    )
+    group.add_argument(
+        "--config", metavar="FILE", default=None, help="Zenoh json5 config file (base config)"
+    )
+
+
+def zenoh_config_from_args(
+    args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES
+) -> zenoh.Config:
+    """`zenoh_config` from the flags `add_zenoh_arguments` parsed."""
+    return zenoh_config(args.mode, args.connect, args.listen, args.config, services)
+
+
+def zenoh_config(
+    mode: ZenohMode | None = None,
+    connect: Sequence[str] | None = None,
+    listen: Sequence[str] | None = None,
+    config_file: str | Path | None = None,
+    services: ServicesConfig = DEFAULT_SERVICES,
+) -> zenoh.Config:
+    """A Zenoh config: the file (when given) or the loopback defaults, then the flags given.
+
+    None means "not given". Raises ZenohConfigError for a bad mode, a missing or invalid
+    file, or a malformed endpoint.
+    """
+    if mode is not None and mode not in MODES:
+        raise ZenohConfigError(f"Zenoh mode {mode!r} is not one of {', '.join(MODES)}")
+    if config_file is not None:
+        config = _config_from_file(Path(config_file))
+    else:
+        config = _default_config(services)
+        mode = mode or "peer"
+        listen = _default_listen(mode, services) if listen is None else listen
+        connect = _default_connect(listen, services) if connect is None else connect
+    if mode is not None:
+        _insert(config, "mode", mode, "--mode")
+    if listen is not None:
+        _insert(config, "listen/endpoints", list(listen), "--listen endpoint")
+    if connect is not None:
+        _insert(config, "connect/endpoints", list(connect), "--connect endpoint")
+    return config
+
+
+def open_session(config: zenoh.Config) -> zenoh.Session:
+    """Open a Zenoh session; ZenohConfigError (one line) when Zenoh refuses the config."""
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as error:
+        endpoints = (
+            f"listen {config.get_json('listen/endpoints')}, "
+            f"connect {config.get_json('connect/endpoints')}"
+        )
+        raise ZenohConfigError(
+            f"cannot open a Zenoh session ({endpoints}): {_one_line(error)}"
+        ) from None
+
+
+def _default_config(services: ServicesConfig) -> zenoh.Config:
+    """No multicast scouting; single-hop gossip so peers that meet at the hub link up."""
+    config = zenoh.Config()
+    _insert(config, "scouting/multicast/enabled", False, "default")
+    _insert(config, "scouting/gossip/enabled", True, "default")
+    _insert(config, "scouting/gossip/multihop", False, "default")
+    return config
+
+
+def _default_listen(mode: ZenohMode, services: ServicesConfig) -> list[str]:
+    """Peers listen on any free loopback port, a router serves the hub, clients never listen."""
+    return {
+        "peer": [services.ephemeral_listen_endpoint],
+        "router": [services.hub_endpoint],
+        "client": [],
+    }[mode]
+
+
+def _default_connect(listen: Sequence[str], services: ServicesConfig) -> list[str]:
+    """Connect to the hub, unless this session is the hub itself."""
+    return [] if services.hub_endpoint in listen else [services.hub_endpoint]
+
+
+def _config_from_file(path: Path) -> zenoh.Config:
+    if not path.is_file():
+        raise ZenohConfigError(f"Zenoh config file {path} does not exist")
+    try:
+        return zenoh.Config.from_file(str(path))
+    except zenoh.ZError as error:
+        raise ZenohConfigError(f"Zenoh config file {path} is invalid: {_one_line(error)}") from None
+
+
+def _insert(config: zenoh.Config, key: str, value: object, what: str) -> None:
+    try:
+        config.insert_json5(key, json.dumps(value))
+    except zenoh.ZError as error:
+        raise ZenohConfigError(f"bad {what} {value!r}: {_one_line(error)}") from None
+
+
+def _one_line(error: Exception) -> str:
+    """Zenoh's error text without its Rust source locations, wrappers and line breaks."""
+    text = str(error)
+    wrapped = _JSON5_MESSAGE.search(text)
+    if wrapped:
+        text = wrapped.group(1)
+    return " ".join(_RUST_LOCATION.sub("", text).split())

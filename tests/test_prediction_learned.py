@@ -1,0 +1,86 @@
+"""The learned ensemble as a predictor: weights on disk, copy-through, determinism."""
+
+import numpy as np
+import pytest
+import torch
+
+from mapex.config import NetworkConfig
+from mapex.grid import FREE, OCCUPIED, UNKNOWN
+from mapex.prediction import make_predictor
+from mapex.prediction.learned import LearnedEnsemble
+from mapex.prediction.network import LamaGenerator
+from mapex.prediction.weights import (
+    MEMBER_NAMES,
+    WEIGHTS_DIR,
+    WeightsError,
+    read_metadata,
+    save_weights,
+)
+
+SMALL = NetworkConfig(channels=16, n_blocks=1, downscale=4, refine_channels=4)
+
+
+@pytest.fixture
+def random_weights(tmp_path):
+    for index, name in enumerate(MEMBER_NAMES):
+        torch.manual_seed(index)
+        save_weights(tmp_path / f"{name}.pt", LamaGenerator(SMALL), {"member": name})
+    return tmp_path
+
+
+def partly_observed(shape=(45, 61)):
+    observed = np.full(shape, UNKNOWN, dtype=np.uint8)
+    observed[5:30, 5:40] = FREE
+    observed[5:30, 4] = OCCUPIED
+    observed[4, 4:41] = OCCUPIED
+    return observed
+
+
+def test_known_cells_are_copied_through(random_weights):
+    predictor = LearnedEnsemble(random_weights)
+    observed = partly_observed()
+    prediction = predictor.predict(observed)
+    assert prediction.members.shape == (4, *observed.shape)
+    known = observed != UNKNOWN
+    for member in prediction.members:
+        np.testing.assert_array_equal(member[known], observed[known] / 2.0)
+    unknown = prediction.members[:, ~known]
+    assert ((unknown >= 0) & (unknown <= 1)).all()
+    assert prediction.variance[~known].max() > 0  # members differ
+
+
+def test_region_and_member_selection(random_weights):
+    predictor = LearnedEnsemble(random_weights)
+    observed = partly_observed()
+    whole = predictor.predict(observed)
+    main = predictor.predict_main(observed)
+    np.testing.assert_allclose(main, whole.main, atol=1e-6)
+    part = predictor.predict(observed, region=(0, 35, 0, 50))
+    assert (part.variance[35:, :] == 0).all() and (part.variance[:, 50:] == 0).all()
+
+
+def test_prediction_is_deterministic(random_weights):
+    predictor = LearnedEnsemble(random_weights)
+    observed = partly_observed()
+    np.testing.assert_array_equal(
+        predictor.predict(observed).members, predictor.predict(observed).members
+    )
+
+
+def test_missing_or_broken_weights_are_one_line_errors(tmp_path):
+    with pytest.raises(WeightsError, match="no weights file"):
+        LearnedEnsemble(tmp_path)
+    for name in MEMBER_NAMES:
+        (tmp_path / f"{name}.pt").write_bytes(b"garbage")
+    with pytest.raises(WeightsError, match="not a weights file") as info:
+        LearnedEnsemble(tmp_path)
+    assert "\n" not in str(info.value)
+
+
+def test_shipped_weights_load_on_cpu_and_say_how_they_were_trained():
+    predictor = make_predictor("lama")
+    assert predictor.n_members == 4
+    assert all(next(m.parameters()).device.type == "cpu" for m in predictor.models)
+    metadata = read_metadata(WEIGHTS_DIR / "g.pt")
+    assert metadata["steps"] > 0 and metadata["training_wall_time_s"] > 0
+    assert not {"50037764_PLAN1", "50052748"} & set(metadata["worlds"])  # never trained on

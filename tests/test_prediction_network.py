@@ -1,0 +1,59 @@
+"""The LaMa-style generator: any map size, known cells copied through, determinism."""
+
+import numpy as np
+import pytest
+import torch
+
+from mapex.config import NetworkConfig
+from mapex.grid import FREE, OCCUPIED, UNKNOWN
+from mapex.prediction.network import LamaGenerator, encode_observed
+
+SMALL = NetworkConfig(channels=16, n_blocks=1, downscale=4, refine_channels=4)
+
+
+def random_observed(shape, seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.choice(np.array([FREE, UNKNOWN, OCCUPIED], dtype=np.uint8), size=shape)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (3, 5), (7, 2), (33, 65), (64, 64), (101, 37)])
+def test_output_has_the_input_size(shape):
+    torch.manual_seed(0)
+    net = LamaGenerator(SMALL).eval()
+    inputs = torch.from_numpy(encode_observed(random_observed(shape)))[None]
+    with torch.inference_mode():
+        assert net(inputs).shape == (1, 1, *shape)
+
+
+def test_default_network_on_a_large_map():
+    net = LamaGenerator(NetworkConfig()).eval()
+    inputs = torch.from_numpy(encode_observed(random_observed((442, 1327))))[None]
+    with torch.inference_mode():
+        logits = net(inputs)
+    assert logits.shape == (1, 1, 442, 1327) and torch.isfinite(logits).all()
+
+
+def test_padding_is_treated_as_unknown_not_as_free():
+    torch.manual_seed(0)
+    net = LamaGenerator(SMALL).eval()
+    observed = random_observed((10, 10))
+    padded = np.full((12, 12), UNKNOWN, dtype=np.uint8)
+    padded[:10, :10] = observed
+    with torch.inference_mode():
+        small = net(torch.from_numpy(encode_observed(observed))[None])
+        large = net(torch.from_numpy(encode_observed(padded))[None])
+    torch.testing.assert_close(small, large[..., :10, :10])
+
+
+def test_encoding_is_one_hot():
+    encoded = encode_observed(random_observed((9, 11)))
+    assert encoded.shape == (3, 9, 11)
+    np.testing.assert_array_equal(encoded.sum(axis=0), 1.0)
+
+
+def test_inference_is_deterministic():
+    torch.manual_seed(0)
+    net = LamaGenerator(SMALL).eval()
+    inputs = torch.from_numpy(encode_observed(random_observed((40, 52), seed=3)))[None]
+    with torch.inference_mode():
+        torch.testing.assert_close(net(inputs), net(inputs), rtol=0, atol=0)

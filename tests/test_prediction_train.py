@@ -1,0 +1,97 @@
+"""A few-step training run (seconds), checkpoint/resume, and the data rules."""
+
+import numpy as np
+import pytest
+import torch
+
+import mapex.prediction.train as train
+from mapex.config import NetworkConfig, PredictorTrainingConfig
+from mapex.prediction.dataset import (
+    CropSampler,
+    SnapshotSet,
+    explore_snapshots,
+    training_world_specs,
+)
+from mapex.prediction.weights import load_member, read_metadata
+from mapex.worlds import load_world
+
+SMALL = NetworkConfig(channels=16, n_blocks=1, downscale=4, refine_channels=4)
+TINY = PredictorTrainingConfig(
+    procedural_worlds=1,
+    snapshot_steps=120,
+    snapshot_every_steps=40,
+    starts_per_world=1,
+    snapshot_methods=("nearest",),
+    crop_cells=64,
+    batch_size=2,
+    main_steps=4,
+    member_steps=2,
+    checkpoint_every_steps=2,
+)
+
+
+@pytest.fixture(scope="module")
+def snapshots():
+    specs = training_world_specs(TINY, [])
+    observed = explore_snapshots(specs[0], TINY)
+    return SnapshotSet([load_world(specs[0])], observed, np.zeros(len(observed), dtype=np.int64))
+
+
+def test_snapshots_are_partial_observations(snapshots):
+    assert len(snapshots.observed) == 3
+    known = [np.count_nonzero(o != 1) for o in snapshots.observed]
+    assert known == sorted(known) and known[0] > 0  # the robot keeps seeing more
+
+
+def test_crops_are_augmented_consistently(snapshots):
+    sampler = CropSampler(snapshots, 64, frontier_share=1.0, kth_share=0.3)
+    observed, walls, mask = sampler.sample(np.random.default_rng(0))
+    assert observed.shape == walls.shape == mask.shape == (64, 64)
+    assert (mask <= (observed == 1)).all()  # the loss only covers unknown cells
+    assert not (walls.astype(bool) & (observed == 0)).any()  # free cells are never walls
+
+
+def test_a_few_training_steps_write_loadable_weights(snapshots, tmp_path):
+    path = train.train_member(0, snapshots, TINY, SMALL, torch.device("cpu"), tmp_path, False)
+    model = load_member(path)
+    assert model.config == SMALL
+    metadata = read_metadata(path)
+    assert metadata["steps"] == 4 and metadata["snapshots"] == 3
+
+
+def test_interrupted_training_resumes_to_the_same_weights(snapshots, tmp_path, monkeypatch):
+    straight = train.train_member(
+        0, snapshots, TINY, SMALL, torch.device("cpu"), tmp_path / "a", False
+    )
+    real_make_batch, calls = train.make_batch, []
+
+    def dying_make_batch(*args):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real_make_batch(*args)
+
+    monkeypatch.setattr(train, "make_batch", dying_make_batch)
+    with pytest.raises(KeyboardInterrupt):
+        train.train_member(0, snapshots, TINY, SMALL, torch.device("cpu"), tmp_path / "b", False)
+    monkeypatch.setattr(train, "make_batch", real_make_batch)
+    resumed = train.train_member(
+        0, snapshots, TINY, SMALL, torch.device("cpu"), tmp_path / "b", True
+    )
+    first, second = load_member(straight).state_dict(), load_member(resumed).state_dict()
+    for key in first:
+        torch.testing.assert_close(first[key], second[key], rtol=0, atol=0)
+
+
+def test_validation_maps_are_refused_for_training():
+    with pytest.raises(ValueError, match="validation-only"):
+        training_world_specs(TINY, ["../shared/data/kth_dev/50052748"])
+
+
+def test_members_train_on_disjoint_worlds():
+    observed = [np.zeros((4, 4), dtype=np.uint8)] * 9
+    worlds = [load_world(f"generated:{i}") for i in range(3)]
+    data = SnapshotSet(worlds, observed, np.repeat(np.arange(3), 3))
+    seen = [set(train.member_snapshots(data, k).world_of) for k in (1, 2, 3)]
+    assert seen == [{0}, {1}, {2}]
+    assert set(train.member_snapshots(data, 0).world_of) == {0, 1, 2}

@@ -1,0 +1,565 @@
+"""Keys, message round trips and the rejection of every kind of malformed payload."""
+
+from __future__ import annotations
+
+import dataclasses
+import zlib
+
+import msgpack
+import numpy as np
+import pytest
+
+from mapex.config import ServicesConfig
+from mapex.grid import FREE, OCCUPIED, UNKNOWN
+from mapex.sensor import Scan
+from mapex.worlds.base import World
+from services.codec import (
+    ProtocolError,
+    dequantise_probability,
+    encode_array,
+    quantise_probability,
+)
+from services.protocol import (
+    ROBOT_TOPICS,
+    AliveKey,
+    ErrorReply,
+    FrontiersMessage,
+    GoalMessage,
+    GroundTruth,
+    MapMessage,
+    Message,
+    MetricsMessage,
+    PathMessage,
+    PoseMessage,
+    PredictKey,
+    PredictReply,
+    PredictRequest,
+    RobotKey,
+    RunKey,
+    ScanReply,
+    StatusMessage,
+    StepRequest,
+    WorldInfo,
+    alive_planner_key,
+    alive_predictor_key,
+    alive_predictor_pattern,
+    alive_world_key,
+    decode_message,
+    parse_key,
+    predict_key,
+    robot_key,
+    robot_key_pattern,
+    run_key,
+)
+
+# ------------------------------------------------------------------------------------ keys
+
+
+@pytest.mark.parametrize(
+    "key, expected, parsed",
+    [
+        (
+            robot_key("run_1", "r0", "observed_map"),
+            "mapex/@v1/run_1/r0/observed_map",
+            RobotKey("run_1", "r0", "observed_map"),
+        ),
+        (
+            robot_key("run-2", "robot_a", "prediction/variance"),
+            "mapex/@v1/run-2/robot_a/prediction/variance",
+            RobotKey("run-2", "robot_a", "prediction/variance"),
+        ),
+        (
+            run_key("run_1", "ground_truth"),
+            "mapex/@v1/run_1/ground_truth",
+            RunKey("run_1", "ground_truth"),
+        ),
+        (run_key("x", "world_info"), "mapex/@v1/x/world_info", RunKey("x", "world_info")),
+        (predict_key("g2", "w-7"), "mapex/@v1/predict/g2/w-7", PredictKey("g2", "w-7")),
+        (
+            alive_predictor_key("g", "host1_3"),
+            "mapex/@v1/alive/predict/g/host1_3",
+            AliveKey("predict", member="g", worker_id="host1_3"),
+        ),
+        (alive_world_key("r"), "mapex/@v1/alive/world/r", AliveKey("world", run="r")),
+        (alive_planner_key("r"), "mapex/@v1/alive/planner/r", AliveKey("planner", run="r")),
+    ],
+)
+def test_keys_are_built_and_parsed_back(key, expected, parsed):
+    assert key == expected
+    assert parse_key(key) == parsed
+
+
+@pytest.mark.parametrize("topic", ROBOT_TOPICS)
+def test_every_robot_topic_round_trips(topic):
+    assert parse_key(robot_key("run", "robot", topic)) == RobotKey("run", "robot", topic)
+
+
+def test_wildcard_patterns():
+    assert robot_key_pattern("observed_map", run="r1") == "mapex/@v1/r1/*/observed_map"
+    assert robot_key_pattern("prediction/mean") == "mapex/@v1/*/*/prediction/mean"
+    assert robot_key_pattern("goal", run="r", robot="b") == robot_key("r", "b", "goal")
+    assert alive_predictor_pattern() == "mapex/@v1/alive/predict/*/*"
+    assert alive_predictor_pattern("g3") == "mapex/@v1/alive/predict/g3/*"
+
+
+@pytest.mark.parametrize(
+    "bad_id",
+    ["", "Run", "a/b", "a*", "$x", "@v1", "a b", "a.b", "x" * 65, 7, None],
+)
+@pytest.mark.parametrize(
+    "build",
+    [
+        lambda i: robot_key(i, "r0", "pose"),
+        lambda i: robot_key("run", i, "pose"),
+        lambda i: run_key(i, "ground_truth"),
+        lambda i: predict_key("g", i),
+        lambda i: alive_predictor_key("g1", i),
+        lambda i: alive_world_key(i),
+    ],
+)
+def test_bad_ids_are_one_line_value_errors(bad_id, build):
+    with pytest.raises(ValueError, match="id") as info:
+        build(bad_id)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "build",
+    [
+        lambda: robot_key("predict", "r0", "pose"),
+        lambda: run_key("alive", "world_info"),
+        lambda: robot_key("run", "r0", "nonsense"),
+        lambda: run_key("run", "pose"),
+        lambda: predict_key("g4", "w"),
+        lambda: alive_predictor_pattern("G"),
+        lambda: robot_key_pattern("pose", run="a/b"),
+        lambda: robot_key_pattern("pose", robot="*"),
+    ],
+)
+def test_reserved_runs_unknown_topics_and_members_are_refused(build):
+    with pytest.raises(ValueError):
+        build()
+
+
+@pytest.mark.parametrize(
+    "key",
+    [
+        "mapex/@v2/run/r0/pose",
+        "other/@v1/run/r0/pose",
+        "xmapex/@v1/run/r0/pose",
+        "mapex/@v1/",
+        "mapex/@v1/run",
+        "mapex/@v1/run/r0/unknown",
+        "mapex/@v1/run/r0/prediction/other",
+        "mapex/@v1/run/*/pose",
+        "mapex/@v1/Run/r0/pose",
+        "mapex/@v1/predict/g9/w1",
+        "mapex/@v1/predict/g/w1/extra",
+        "mapex/@v1/alive/world/predict",
+        "mapex/@v1/alive/predict/g/*",
+        "mapex/@v1/alive/other/x",
+        "mapex/@v1/alive/r0/pose",
+    ],
+)
+def test_parse_key_rejects_foreign_keys(key):
+    with pytest.raises(ProtocolError, match="not a MapEx v1 key") as info:
+        parse_key(key)
+    assert "\n" not in str(info.value)
+
+
+# -------------------------------------------------------------------------------- messages
+
+
+def _sample_messages() -> list[Message]:
+    rng = np.random.default_rng(7)
+    observed = rng.integers(0, 3, size=(40, 50), dtype=np.uint8)
+    cells = rng.integers(0, 200, size=(6, 2)).astype(np.int32)
+    occupancy = rng.random((30, 20)) < 0.3
+    return [
+        StepRequest(cells[:3]),
+        StepRequest(np.empty((0, 2), np.int32)),
+        ScanReply(
+            (12, 34),
+            rng.integers(1, 400, 2500).astype(np.uint16),
+            rng.random(2500) < 0.5,
+        ),
+        PoseMessage(5, (3, 4)),
+        PredictRequest(42, observed),
+        PredictReply.from_probabilities(42, "g1", rng.random((40, 50)), "worker_0", 12.5),
+        MapMessage(10, "observed", observed),
+        MapMessage.from_probabilities(10, "variance", rng.random((40, 50)) * 0.3),
+        FrontiersMessage(3, cells, rng.random(6) * 100),
+        GoalMessage(3, (7, 8)),
+        GoalMessage(4, None),
+        PathMessage(3, cells),
+        MetricsMessage(50, 0.25, 0.5, 0.75, False),
+        MetricsMessage(150, 1.0, 0.0, None, True),
+        StatusMessage(0, "running", "step 0 of 1000"),
+        WorldInfo("generated_3", (30, 20), 0.1, cells[:2] % 20),
+        GroundTruth(occupancy, ~occupancy),
+        ErrorReply("predictor busy"),
+    ]
+
+
+def _assert_same(decoded: Message, original: Message) -> None:
+    assert type(decoded) is type(original)
+    for field in dataclasses.fields(original):
+        got, want = getattr(decoded, field.name), getattr(original, field.name)
+        if isinstance(want, np.ndarray):
+            assert got.dtype == want.dtype and got.shape == want.shape, field.name
+            np.testing.assert_array_equal(got, want)
+        else:
+            assert got == want, field.name
+
+
+@pytest.mark.parametrize("message", _sample_messages(), ids=lambda m: m.TYPE)
+def test_every_message_round_trips(message):
+    payload = message.encode()
+    assert isinstance(payload, bytes)
+    _assert_same(type(message).decode(payload), message)
+    _assert_same(decode_message(payload), message)
+    _assert_same(decode_message(memoryview(payload)), message)
+
+
+def test_scan_reply_converts_to_and_from_a_sensor_scan():
+    scan = Scan((5, 6), np.array([1, 4, 9], np.uint16), np.array([True, False, True]))
+    back = ScanReply.decode(ScanReply.from_scan(scan).encode()).to_scan()
+    assert back.pose == scan.pose
+    np.testing.assert_array_equal(back.n_cells, scan.n_cells)
+    np.testing.assert_array_equal(back.hit, scan.hit)
+
+
+def test_ground_truth_converts_to_and_from_a_world():
+    occupancy = np.zeros((6, 7), bool)
+    occupancy[0] = True
+    world = World("tiny", occupancy, ~occupancy)
+    back = GroundTruth.decode(GroundTruth.from_world(world).encode()).to_world("tiny", 0.1)
+    np.testing.assert_array_equal(back.occupancy, world.occupancy)
+    np.testing.assert_array_equal(back.valid_space, world.valid_space)
+
+
+def test_decode_message_honours_expected_types():
+    payload = ErrorReply("no").encode()
+    assert decode_message(payload, expected=(PredictReply, ErrorReply)) == ErrorReply("no")
+    with pytest.raises(ProtocolError, match="expected a message of type predict_reply"):
+        decode_message(payload, expected=(PredictReply,))
+
+
+def test_error_reply_text_is_made_one_line():
+    assert ErrorReply("bad\n  input\tshape").message == "bad input shape"
+
+
+def test_cells_given_as_python_lists_become_int32():
+    assert StepRequest([[1, 2], [3, 4]]).cells.dtype == np.int32
+    assert StepRequest([]).cells.shape == (0, 2)
+
+
+def test_quantisation_error_is_at_most_half_a_level():
+    rng = np.random.default_rng(0)
+    edges = (np.arange(255, dtype=np.float32) + np.float32(0.5)) / np.float32(255)
+    probability = np.concatenate([rng.random(10_000, dtype=np.float32), edges, [0.0, 1.0]])
+    back = dequantise_probability(quantise_probability(probability))
+    assert back.dtype == np.float32
+    assert np.abs(back - probability).max() <= 1 / 510 + 1e-6  # float32 rounding of q / 255
+    np.testing.assert_array_equal(quantise_probability(np.array([0.0, 1.0])), [0, 255])
+
+
+@pytest.mark.parametrize("bad", [[-0.01], [1.01], [np.nan], [np.inf]])
+def test_quantisation_refuses_values_outside_the_unit_interval(bad):
+    with pytest.raises(ValueError, match="within"):
+        quantise_probability(np.array(bad))
+
+
+def test_arrays_are_compressed_only_above_the_threshold():
+    config = ServicesConfig(compress_threshold_bytes=1000)
+    assert not encode_array(np.zeros(1000, np.uint8), config)["zlib"]
+    big = encode_array(np.zeros(1001, np.uint8), config)
+    assert big["zlib"] and len(big["data"]) < 100
+    noise = np.random.default_rng(1).integers(0, 256, 5000, dtype=np.uint8)
+    assert not encode_array(noise, config)["zlib"]  # incompressible: sent raw
+    message = MapMessage(0, "observed", np.full((100, 100), UNKNOWN, np.uint8))
+    payload = message.encode(config)
+    assert len(payload) < 200
+    _assert_same(MapMessage.decode(payload, config), message)
+
+
+@pytest.mark.parametrize("dtype", ["uint8", "uint16", "int16", "int32", "int64", "float32"])
+def test_arrays_keep_their_dtype_and_byte_order(dtype):
+    from services.codec import unpack_message
+
+    values = np.arange(-3, 9).reshape(3, 4).astype(np.dtype(dtype).newbyteorder(">"))
+    wire = {"a": encode_array(values)}
+    payload = msgpack.packb({"schema": 1, "type": "t", **wire}, use_bin_type=True)
+    decoded = unpack_message(payload).array("a", dtype, 2)
+    assert decoded.dtype == np.dtype(dtype)
+    np.testing.assert_array_equal(decoded, values)
+
+
+def test_unsendable_dtypes_are_refused_on_encoding():
+    with pytest.raises(ProtocolError, match="not sendable"):
+        encode_array(np.zeros(3, np.complex64))
+
+
+# ------------------------------------------------------------------------ malformed inputs
+
+_OBSERVED = np.array([[FREE, UNKNOWN], [OCCUPIED, UNKNOWN]], np.uint8)
+
+
+def _map_document(**changes) -> dict:
+    document = msgpack.unpackb(MapMessage(3, "observed", _OBSERVED).encode())
+    document.update(changes)
+    return {k: v for k, v in document.items() if v is not _DROP}
+
+
+def _array_wire(**changes) -> dict:
+    wire = {"dtype": "uint8", "shape": [2, 2], "zlib": False, "data": _OBSERVED.tobytes()}
+    wire.update(changes)
+    return {k: v for k, v in wire.items() if v is not _DROP}
+
+
+def _zlib_wire(raw: bytes, shape: list[int], tail: bytes = b"") -> dict:
+    return _array_wire(shape=shape, zlib=True, data=zlib.compress(raw) + tail)
+
+
+_DROP = object()
+_BOMB = _zlib_wire(bytes(16 * 2**20), [2, 2])  # 16 MiB of zeros behind a 4-byte shape
+_CASES = {
+    "not a map": (msgpack.packb([1, 2, 3]), "not a map"),
+    "nil": (msgpack.packb(None), "not a map"),
+    "no schema": (_map_document(schema=_DROP), "schema version"),
+    "schema 2": (_map_document(schema=2), "schema version 2"),
+    "schema as text": (_map_document(schema="1"), "schema version"),
+    "schema as bool": (_map_document(schema=True), "schema version"),
+    "no type": (_map_document(type=_DROP), "message type"),
+    "type not a string": (_map_document(type=5), "message type"),
+    "unknown type": (_map_document(type="teleport"), "unknown message type|got type 'teleport'"),
+    "missing field": (_map_document(t=_DROP), "missing field 't'"),
+    "extra field": (_map_document(colour="red"), "unexpected fields"),
+    "t as text": (_map_document(t="3"), "'t' must be an integer"),
+    "t as bool": (_map_document(t=True), "'t' must be an integer"),
+    "t as float": (_map_document(t=3.0), "'t' must be an integer"),
+    "negative t": (_map_document(t=-1), "non-negative"),
+    "unknown kind": (_map_document(kind="heat"), "kind"),
+    "array not a map": (_map_document(map_u8=b"\x00" * 4), "array map"),
+    "array extra key": (_map_document(map_u8=_array_wire(order="C")), "array map"),
+    "array missing key": (_map_document(map_u8=_array_wire(zlib=_DROP)), "array map"),
+    "wrong dtype": (
+        _map_document(map_u8=_array_wire(dtype="float64", data=bytes(32))),
+        "must be uint8",
+    ),
+    "unknown dtype": (_map_document(map_u8=_array_wire(dtype="object")), "must be uint8"),
+    "wrong rank": (_map_document(map_u8=_array_wire(shape=[4])), "shape of 2"),
+    "negative shape": (_map_document(map_u8=_array_wire(shape=[-2, -2])), "shape of 2"),
+    "shape of floats": (_map_document(map_u8=_array_wire(shape=[2.0, 2.0])), "shape of 2"),
+    "data as text": (_map_document(map_u8=_array_wire(data="abcd")), "bytes 'data'"),
+    "zlib flag as int": (_map_document(map_u8=_array_wire(zlib=0)), "boolean 'zlib'"),
+    "short data": (_map_document(map_u8=_array_wire(data=b"\x00" * 3)), "need 4"),
+    "long data": (_map_document(map_u8=_array_wire(data=b"\x00" * 5)), "need 4"),
+    "short zlib data": (_map_document(map_u8=_zlib_wire(b"\x00" * 3, [2, 2])), "need 4"),
+    "zlib bomb": (_map_document(map_u8=_BOMB), "decompresses to more"),
+    "not zlib": (_map_document(map_u8=_array_wire(zlib=True, data=b"nonsense")), "zlib"),
+    "truncated zlib": (
+        _map_document(map_u8=_array_wire(zlib=True, data=zlib.compress(bytes(4))[:-3])),
+        "truncated",
+    ),
+    "trailing zlib bytes": (
+        _map_document(map_u8=_zlib_wire(bytes(4), [2, 2], tail=b"junk")),
+        "trailing",
+    ),
+    "huge declared shape": (
+        _map_document(map_u8=_zlib_wire(bytes(4), [2**20, 2**20])),
+        "decoded-size limit",
+    ),
+    "bad observed code": (
+        _map_document(map_u8=_array_wire(data=bytes([0, 1, 2, 3]))),
+        "codes other than",
+    ),
+    "empty map": (_map_document(map_u8=_array_wire(shape=[0, 2], data=b"")), "empty"),
+}
+
+
+@pytest.mark.parametrize("document, message", list(_CASES.values()), ids=list(_CASES))
+def test_malformed_payloads_raise_one_line_protocol_errors(document, message):
+    payload = document if isinstance(document, bytes) else msgpack.packb(document)
+    for decode in (MapMessage.decode, decode_message):
+        with pytest.raises(ProtocolError, match=message) as info:
+            decode(payload)
+        assert "\n" not in str(info.value)
+
+
+def _packed(message: Message, name: str, wire: dict) -> bytes:
+    document = msgpack.unpackb(message.encode())
+    document[name] = wire
+    return msgpack.packb(document)
+
+
+@pytest.mark.parametrize(
+    "payload, decode, match",
+    [
+        (  # cells must be (k, 2)
+            _packed(
+                StepRequest([[1, 2]]),
+                "cells",
+                {"dtype": "int32", "shape": [1, 3], "zlib": False, "data": bytes(12)},
+            ),
+            StepRequest.decode,
+            r"\(k, 2\)",
+        ),
+        (  # cells must be int32 on the wire even though int64 would hold them
+            _packed(
+                PathMessage(0, [[1, 2]]),
+                "cells",
+                {"dtype": "int64", "shape": [1, 2], "zlib": False, "data": bytes(16)},
+            ),
+            PathMessage.decode,
+            "must be int32",
+        ),
+        (  # the observed crop is 2-D
+            _packed(
+                PredictRequest(1, _OBSERVED),
+                "observed",
+                {"dtype": "uint8", "shape": [4], "zlib": False, "data": bytes(4)},
+            ),
+            PredictRequest.decode,
+            "shape of 2",
+        ),
+        (  # bool arrays hold only 0 and 1
+            _packed(
+                GroundTruth(np.zeros((1, 2), bool), np.zeros((1, 2), bool)),
+                "occupancy",
+                {"dtype": "bool", "shape": [1, 2], "zlib": False, "data": b"\x00\x02"},
+            ),
+            GroundTruth.decode,
+            "other than 0 and 1",
+        ),
+        (  # ground-truth maps of different shapes
+            _packed(
+                GroundTruth(np.zeros((1, 2), bool), np.zeros((1, 2), bool)),
+                "occupancy",
+                {"dtype": "bool", "shape": [2, 1], "zlib": False, "data": bytes(2)},
+            ),
+            GroundTruth.decode,
+            "differ in shape",
+        ),
+        (  # one hit flag per ray
+            _packed(
+                ScanReply((1, 1), np.ones(3, np.uint16), np.ones(3, bool)),
+                "hit",
+                {"dtype": "bool", "shape": [2], "zlib": False, "data": bytes(2)},
+            ),
+            ScanReply.decode,
+            "one length",
+        ),
+        (  # one score per frontier
+            _packed(
+                FrontiersMessage(0, [[1, 2]], np.ones(1)),
+                "scores",
+                {"dtype": "float64", "shape": [2], "zlib": False, "data": bytes(16)},
+            ),
+            FrontiersMessage.decode,
+            "one score per",
+        ),
+        (
+            _packed(PredictReply(1, "g", _OBSERVED, "w", 1.0), "member", "g7"),
+            PredictReply.decode,
+            "member",
+        ),
+        (
+            _packed(PredictReply(1, "g", _OBSERVED, "w", 1.0), "worker_id", "w/1"),
+            PredictReply.decode,
+            "worker_id",
+        ),
+        (
+            _packed(MetricsMessage(0, 0.5, 0.5, None, False), "coverage", 1.5),
+            MetricsMessage.decode,
+            "outside",
+        ),
+        (
+            _packed(MetricsMessage(0, 0.5, 0.5, None, False), "tu", float("nan")),
+            MetricsMessage.decode,
+            "outside",
+        ),
+        (
+            _packed(PoseMessage(0, (1, 2)), "pose", [1, 2, 3]),
+            PoseMessage.decode,
+            r"\[row, col\]",
+        ),
+        (
+            _packed(
+                WorldInfo("w", (5, 5), 0.1, [[1, 1]]),
+                "starts",
+                encode_array(np.array([[9, 1]], np.int32)),
+            ),
+            WorldInfo.decode,
+            "outside",
+        ),
+        (ErrorReply("x").encode(), MapMessage.decode, "expected a map message"),
+        ("not bytes", MapMessage.decode, "must be bytes"),
+    ],
+)
+def test_per_message_rules_are_enforced(payload, decode, match):
+    with pytest.raises(ProtocolError, match=match) as info:
+        decode(payload)
+    assert "\n" not in str(info.value)
+
+
+def test_oversized_payloads_are_refused_before_unpacking():
+    config = ServicesConfig(max_message_bytes=1000)
+    with pytest.raises(ProtocolError, match="exceeds the 1000-byte limit"):
+        decode_message(b"\xc1" * 1001, config=config)  # invalid msgpack, never looked at
+    big = MapMessage(0, "observed", np.random.default_rng(2).integers(0, 3, (40, 40), np.uint8))
+    with pytest.raises(ProtocolError, match="exceeds"):
+        big.encode(config)
+
+
+def test_decoded_size_is_capped_per_message():
+    config = ServicesConfig(max_decoded_bytes=10)
+    message = GroundTruth(np.zeros((2, 3), bool), np.zeros((2, 3), bool))  # 12 bytes in all
+    with pytest.raises(ProtocolError, match="decoded-size limit"):
+        GroundTruth.decode(message.encode(), config)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_random_bytes_raise_protocol_errors(seed):
+    rng = np.random.default_rng(seed)
+    for size in rng.integers(0, 300, 50):
+        payload = rng.integers(0, 256, size, dtype=np.uint8).tobytes()
+        with pytest.raises(ProtocolError):
+            decode_message(payload)
+
+
+@pytest.mark.parametrize("message", _sample_messages()[:8], ids=lambda m: m.TYPE)
+def test_corrupted_payloads_decode_or_raise_protocol_errors_only(message):
+    rng = np.random.default_rng(3)
+    payload = np.frombuffer(message.encode(), np.uint8)
+    for _ in range(100):
+        corrupted = payload.copy()
+        spots = rng.integers(0, len(payload), rng.integers(1, 4))
+        corrupted[spots] = rng.integers(0, 256, len(spots))
+        cut = rng.integers(len(payload) // 2, len(payload) + 1)
+        try:
+            decode_message(corrupted[:cut].tobytes())
+        except ProtocolError as error:
+            assert "\n" not in str(error)
+
+
+@pytest.mark.parametrize(
+    "build, match",
+    [
+        (lambda: StepRequest(np.zeros((2, 3), np.int32)), r"\(k, 2\)"),
+        (lambda: StepRequest(np.array([[0.5, 1.0]])), "integer cells"),
+        (lambda: StepRequest([[-1, 2]]), "negative"),
+        (lambda: PredictRequest(-1, _OBSERVED), "request_id"),
+        (lambda: PredictRequest(1, _OBSERVED.astype(np.float32)), "uint8"),
+        (lambda: MapMessage(0, "observed", _OBSERVED + 1), "codes other than"),
+        (lambda: MapMessage.from_probabilities(0, "observed", np.zeros((2, 2))), "codes"),
+        (lambda: PoseMessage(0, (1,)), "two non-negative"),
+        (lambda: MetricsMessage(0, 0.5, 0.5, None, 1), "degraded"),
+        (lambda: StatusMessage(0, "sleeping"), "state"),
+        (lambda: WorldInfo("", (5, 5), 0.1, []), "name"),
+        (lambda: WorldInfo("w", (5, 5), 0.0, []), "resolution_m"),
+    ],
+)
+def test_bad_messages_are_refused_when_built(build, match):
+    with pytest.raises(ValueError, match=match):
+        build()
