@@ -229,6 +229,10 @@ class ServicesConfig:
     zlib_level: int = 1  # fastest level: maps are mostly runs of one code
     hub_endpoint: str = "tcp/127.0.0.1:7447"  # well-known loopback endpoint served by services.up
     ephemeral_listen_endpoint: str = "tcp/127.0.0.1:0"  # default listener: loopback, any free port
+    predict_timeout_s: float = 10.0  # per-member prediction query; a hung worker costs this once
+    liveliness_query_timeout_s: float = 2.0  # planner's start-up discovery of live workers
+    predictor_threads: int = 1  # torch CPU threads of one predictor worker (DESIGN.md)
+    predictor_drain_s: float = 3.0  # on shutdown, wait this long for the query being computed
 
 
 @dataclass(frozen=True)

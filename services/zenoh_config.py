@@ -30,10 +30,10 @@ from typing import Literal
 import zenoh
 
 from mapex.config import ServicesConfig
+from services.codec import DEFAULT_SERVICES
 
 ZenohMode = Literal["peer", "client", "router"]
 MODES = ("peer", "client", "router")
-DEFAULT_SERVICES = ServicesConfig()
 
 _JSON5_MESSAGE = re.compile(r'msg: "((?:[^"\\]|\\.)*)"')
 _RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")

@@ -1,0 +1,273 @@
+"""The planner's side of the predictor pool: an ensemble whose members answer over Zenoh.
+
+`ZenohEnsemble` tracks the live workers of every member through their liveliness tokens
+(a query at start plus a subscriber for joins and leaves). A prediction sends one query per
+member, all issued before any reply is awaited, each to the least recently used live worker
+of that member: replicas share the load and every query is answered by exactly one worker.
+A member whose worker times out, refuses, sends an invalid reply or has no live worker is
+left out, and the result says which members answered: the planner goes on with those
+(DESIGN.md, Reliability) and records the step as degraded.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import zenoh
+
+from mapex.config import ServicesConfig
+from mapex.prediction.base import MEMBER_NAMES, EnsemblePrediction, Predictor, Region
+from services.codec import DEFAULT_SERVICES, ProtocolError
+from services.keys import AliveKey, alive_predictor_pattern, parse_key, predict_key
+from services.messages import ErrorReply, PredictReply, PredictRequest, decode_message
+
+_WAIT_POLL_S = 0.02  # polling step of `wait_for_workers`
+
+log = logging.getLogger("services.ensemble_client")
+
+
+class MembersMissingError(RuntimeError):
+    """Some requested members did not answer (use `predict_available` to go on without them)."""
+
+
+@dataclass(frozen=True)
+class MemberAnswers:
+    """What the pool answered for one crop.
+
+    probabilities: float32 (len(answered), h, w), in the order of `answered` (member indices);
+    missing: the requested members that did not answer; workers / compute_ms: per answered
+    member, the worker that served it and its compute time in milliseconds.
+    """
+
+    probabilities: np.ndarray
+    answered: tuple[int, ...]
+    missing: tuple[int, ...]
+    workers: dict[int, str] = field(default_factory=dict)
+    compute_ms: dict[int, float] = field(default_factory=dict)
+
+    @property
+    def complete(self) -> bool:
+        """Whether every requested member answered."""
+        return not self.missing
+
+
+@dataclass
+class _Pending:
+    """One query in flight: member index, chosen worker, and the handler its replies reach."""
+
+    member: int
+    worker_id: str
+    replies: zenoh.Handler
+
+
+class ZenohEnsemble(Predictor):
+    """The ensemble G, G_1..G_3 served by predictor workers reachable through `session`."""
+
+    name = "zenoh"
+    n_members = len(MEMBER_NAMES)
+
+    def __init__(self, session: zenoh.Session, services: ServicesConfig = DEFAULT_SERVICES) -> None:
+        self.session = session
+        self.services = services
+        self.last_answers: MemberAnswers | None = None
+        self._lock = threading.Lock()
+        self._live: dict[str, dict[str, int]] = {name: {} for name in MEMBER_NAMES}  # -> last use
+        self._ticks = itertools.count(1)
+        self._request_ids = itertools.count()
+        pattern = alive_predictor_pattern()
+        self._subscriber = session.liveliness().declare_subscriber(
+            pattern, self._on_liveliness, history=True
+        )
+        for reply in session.liveliness().get(pattern, timeout=services.liveliness_query_timeout_s):
+            if reply.ok is not None:
+                self._set_alive(str(reply.ok.key_expr), alive=True)
+
+    # ------------------------------------------------------------------ worker discovery
+
+    def live_workers(self) -> dict[str, tuple[str, ...]]:
+        """The live worker ids of every member (sorted), as the liveliness tokens say now."""
+        with self._lock:
+            return {name: tuple(sorted(workers)) for name, workers in self._live.items()}
+
+    def wait_for_workers(
+        self, members: Sequence[str] = MEMBER_NAMES, timeout_s: float = 10.0, count: int = 1
+    ) -> bool:
+        """Wait until each of `members` has at least `count` live workers; False on timeout."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            live = self.live_workers()
+            if all(len(live[name]) >= count for name in members):
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(_WAIT_POLL_S)
+
+    def close(self) -> None:
+        """Stop tracking workers (the session stays open: it belongs to the caller)."""
+        self._subscriber.undeclare()
+
+    def __enter__(self) -> ZenohEnsemble:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        self._set_alive(str(sample.key_expr), alive=sample.kind == zenoh.SampleKind.PUT)
+
+    def _set_alive(self, key: str, alive: bool) -> None:
+        try:
+            parsed = parse_key(key)
+        except ProtocolError as error:
+            log.warning("ignored a liveliness token: %s", error)
+            return
+        if not (isinstance(parsed, AliveKey) and parsed.role == "predict"):
+            return
+        with self._lock:
+            workers = self._live[parsed.member]
+            if alive:
+                workers.setdefault(parsed.worker_id, 0)
+            else:
+                workers.pop(parsed.worker_id, None)
+        change = "joined" if alive else "left"
+        log.info("worker %s of member %s %s", parsed.worker_id, parsed.member, change)
+
+    def _choose_worker(self, member: str) -> str | None:
+        """The least recently used live worker of `member` (ties by id), now marked used."""
+        with self._lock:
+            workers = self._live[member]
+            if not workers:
+                return None
+            worker_id = min(workers, key=lambda w: (workers[w], w))
+            workers[worker_id] = next(self._ticks)
+            return worker_id
+
+    # ------------------------------------------------------------------ prediction
+
+    def predict_members(self, observed: np.ndarray, members: Sequence[int]) -> np.ndarray:
+        """All requested members' probabilities, float32 (len(members), h, w).
+
+        Raises MembersMissingError when one did not answer (`last_answers` says which).
+        """
+        answers = self.predict_available(observed, members)
+        if answers.missing:
+            names = ", ".join(MEMBER_NAMES[k] for k in answers.missing)
+            raise MembersMissingError(f"members {names} did not answer")
+        return answers.probabilities
+
+    def predict_available(self, observed: np.ndarray, members: Sequence[int]) -> MemberAnswers:
+        """Ask every member in `members` for the crop `observed` in parallel; keep who answers.
+
+        Waits at most `services.predict_timeout_s` (all queries run concurrently).
+        """
+        members = tuple(members)
+        if observed.size == 0:  # nothing to predict (PredictRequest needs a non-empty map)
+            empty = np.zeros((len(members), *observed.shape), dtype=np.float32)
+            self.last_answers = MemberAnswers(empty, members, ())
+            return self.last_answers
+        request_id = next(self._request_ids)
+        payload = PredictRequest(request_id, observed).encode(self.services)
+        pending = [self._send(k, payload) for k in members]
+        results = {p.member: self._collect(p, request_id, observed.shape) for p in pending if p}
+        answered = tuple(k for k in members if results.get(k) is not None)
+        stacked = np.empty((len(answered), *observed.shape), dtype=np.float32)
+        for row, k in enumerate(answered):
+            stacked[row] = results[k].probabilities()
+        answers = MemberAnswers(
+            stacked,
+            answered,
+            tuple(k for k in members if k not in answered),
+            {k: results[k].worker_id for k in answered},
+            {k: results[k].compute_ms for k in answered},
+        )
+        self.last_answers = answers
+        return answers
+
+    def predict_ensemble(
+        self,
+        observed: np.ndarray,
+        region: Region | None = None,
+        members: Sequence[int] | None = None,
+    ) -> tuple[EnsemblePrediction, MemberAnswers]:
+        """Like `predict`, with only the members that answered (row i is `answered[i]`).
+
+        The prediction's main map is member 0 only if G answered (check `answered[0] == 0`).
+        """
+        members = tuple(range(self.n_members)) if members is None else tuple(members)
+        r0, r1, c0, c1 = region or (0, observed.shape[0], 0, observed.shape[1])
+        answers = self.predict_available(observed[r0:r1, c0:c1], members)
+        prediction = _Answered(answers.probabilities).predict(observed, region, answers.answered)
+        return prediction, answers
+
+    def _send(self, member: int, payload: bytes) -> _Pending | None:
+        name = MEMBER_NAMES[member]
+        worker_id = self._choose_worker(name)
+        if worker_id is None:
+            log.warning("member %s has no live worker", name)
+            return None
+        replies = self.session.get(
+            predict_key(name, worker_id), payload=payload, timeout=self.services.predict_timeout_s
+        )
+        return _Pending(member, worker_id, replies)
+
+    def _collect(
+        self, pending: _Pending, request_id: int, shape: tuple[int, ...]
+    ) -> PredictReply | None:
+        """The valid reply of one query, or None (logged) when there is none."""
+        name, where = MEMBER_NAMES[pending.member], f"worker {pending.worker_id}"
+        replies = list(pending.replies)  # ends when the query is finalised or times out
+        if not replies:  # no queryable matched (the worker just left) or it sent nothing
+            log.warning("member %s: %s sent no reply", name, where)
+            return None
+        for reply in replies:
+            message, problem = self._check_reply(reply, request_id, name, shape)
+            if problem is None:
+                return message
+            log.warning("member %s: %s gave no prediction: %s", name, where, problem)
+        return None
+
+    def _check_reply(
+        self, reply: zenoh.Reply, request_id: int, member: str, shape: tuple[int, ...]
+    ) -> tuple[PredictReply | None, str | None]:
+        """(the reply's PredictReply, None) when it answers this query, else (None, why not)."""
+        payload = (reply.ok or reply.err).payload.to_bytes()
+        try:
+            message = decode_message(payload, (PredictReply, ErrorReply), self.services)
+        except ProtocolError as error:
+            if reply.err is not None:  # Zenoh's own error, e.g. "Timeout"
+                return None, " ".join(payload.decode("utf-8", "replace").split())
+            return None, str(error)
+        problem = _reply_problem(message, request_id, member, shape)
+        return (message, None) if problem is None else (None, problem)
+
+
+def _reply_problem(
+    message: PredictReply | ErrorReply, request_id: int, member: str, shape: tuple[int, ...]
+) -> str | None:
+    """Why `message` is not the answer to this query, or None when it is."""
+    if isinstance(message, ErrorReply):
+        return f"error reply: {message.message}"
+    if message.request_id != request_id:
+        return f"reply to request {message.request_id}, expected {request_id}"
+    if message.member != member:
+        return f"reply from member {message.member}, expected {member}"
+    if message.probabilities_u8.shape != tuple(shape):
+        return f"reply of shape {message.probabilities_u8.shape}, expected {tuple(shape)}"
+    return None
+
+
+class _Answered(Predictor):
+    """Already computed member outputs, so `Predictor.predict` can assemble them."""
+
+    def __init__(self, probabilities: np.ndarray) -> None:
+        self.probabilities = probabilities
+        self.n_members = len(probabilities)
+
+    def predict_members(self, observed: np.ndarray, members: Sequence[int]) -> np.ndarray:
+        return self.probabilities

@@ -1,0 +1,224 @@
+"""A predictor worker: serves prediction queries for one ensemble member over Zenoh.
+
+    python -m services.predictor --member g [--worker-id ID] [--weights-dir DIR]
+        [--device cpu|cuda] [--threads 1] [--mode ...] [--connect ...] [--listen ...]
+
+The worker loads its member's weights, declares a queryable on
+`mapex/@v1/predict/<member>/<worker_id>` and then a liveliness token on
+`mapex/@v1/alive/predict/<member>/<worker_id>` (so a live token means the queryable is
+there). Planners send each query to one chosen worker, so replicas of a member share the
+load. Queries are answered one at a time on a serving thread (never on Zenoh's own threads,
+which a slow prediction would stall): a PredictReply, or an ErrorReply on the error channel
+for a malformed request; the worker never dies of a bad message. SIGINT/SIGTERM undeclare
+everything, close the session and exit 0. Bad flags or missing weights: one line, exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import re
+import signal
+import socket
+import sys
+import threading
+import time
+from pathlib import Path
+
+import zenoh
+
+from mapex.config import ServicesConfig
+from mapex.prediction.base import Predictor
+from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
+from services.codec import DEFAULT_SERVICES, Payload, ProtocolError
+from services.keys import ID_MAX_CHARS, MEMBERS, alive_predictor_key, is_valid_id, predict_key
+from services.messages import ErrorReply, PredictReply, PredictRequest
+from services.zenoh_config import (
+    ZenohConfigError,
+    add_zenoh_arguments,
+    open_session,
+    zenoh_config_from_args,
+)
+
+EXIT_USAGE = 2  # bad flags, missing weights, unusable Zenoh configuration
+_DEVICE_PATTERN = re.compile(r"cpu|cuda(:\d+)?")
+_STOP_POLL_S = 0.5  # how often the main thread looks up from waiting (signals run meanwhile)
+
+log = logging.getLogger("services.predictor")
+
+
+class MemberServer:
+    """Turns one request payload into the reply of one member; knows nothing of Zenoh."""
+
+    def __init__(self, predictor: Predictor, member: str, worker_id: str) -> None:
+        self.predictor = predictor
+        self.member = member
+        self.worker_id = worker_id
+        self.answered = 0  # predictions served
+
+    def answer(self, payload: Payload | None) -> PredictReply | ErrorReply:
+        """The PredictReply for a valid PredictRequest payload, else an ErrorReply saying why."""
+        try:
+            if payload is None:
+                raise ProtocolError("the query carries no payload")
+            request = PredictRequest.decode(payload)
+        except ProtocolError as error:
+            log.warning("refused a malformed request: %s", error)
+            return ErrorReply(f"malformed predict request: {error}")
+        started = time.perf_counter()
+        try:
+            probabilities = self.predictor.predict_members(request.observed, (0,))[0]
+            compute_ms = (time.perf_counter() - started) * 1e3
+            reply = PredictReply.from_probabilities(
+                request.request_id, self.member, probabilities, self.worker_id, compute_ms
+            )
+        except Exception as error:  # a failed prediction must not take the worker down
+            log.exception("prediction of request %d failed", request.request_id)
+            return ErrorReply(f"prediction failed: {type(error).__name__}: {error}")
+        self.answered += 1
+        return reply
+
+
+def serve(
+    session: zenoh.Session,
+    server: MemberServer,
+    stop: threading.Event,
+    services: ServicesConfig = DEFAULT_SERVICES,
+) -> int:
+    """Serve `server`'s member on `session` until `stop` is set; return the queries answered."""
+    key = predict_key(server.member, server.worker_id)
+    queryable = session.declare_queryable(key)
+    token = session.liveliness().declare_token(alive_predictor_key(server.member, server.worker_id))
+    thread = threading.Thread(
+        target=_answer_queries, args=(queryable, key, server), name="serve", daemon=True
+    )
+    thread.start()
+    log.info("serving member %s on %s", server.member, key)
+    try:
+        while not stop.wait(_STOP_POLL_S):
+            pass
+    finally:
+        token.undeclare()
+        queryable.undeclare()  # ends the serving thread's iteration
+        thread.join(services.predictor_drain_s)
+    return server.answered
+
+
+def _answer_queries(queryable: zenoh.Queryable, key: str, server: MemberServer) -> None:
+    """Answer queries in arrival order until the queryable is undeclared."""
+    for query in queryable:
+        with query:  # leaving the block finalises the query: the querier stops waiting
+            payload = None if query.payload is None else query.payload.to_bytes()
+            reply = server.answer(payload)
+            try:
+                if isinstance(reply, ErrorReply):
+                    query.reply_err(reply.encode())
+                else:
+                    query.reply(key, reply.encode())
+            except zenoh.ZError as error:  # e.g. the querier left; the next query is unaffected
+                log.warning("could not send a reply: %s", " ".join(str(error).split()))
+
+
+def main(
+    config: zenoh.Config,
+    member: str,
+    worker_id: str,
+    weights_dir: Path = WEIGHTS_DIR,
+    device: str = "cpu",
+    threads: int = DEFAULT_SERVICES.predictor_threads,
+    stop: threading.Event | None = None,
+    services: ServicesConfig = DEFAULT_SERVICES,
+) -> int:
+    """Load `member`'s weights, then serve it until `stop` is set; return the queries answered.
+
+    Raises WeightsError (missing or broken weights) or ZenohConfigError (session refused).
+    The weights load before the session opens, so a bad file costs no network set-up.
+    """
+    from mapex.prediction.learned import LearnedEnsemble  # torch only once the flags are valid
+
+    predictor = LearnedEnsemble(Path(weights_dir), device, threads, members=(member,))
+    session = open_session(config)
+    try:
+        server = MemberServer(predictor, member, worker_id)
+        return serve(session, server, stop or threading.Event(), services)
+    finally:
+        session.close()
+
+
+def default_worker_id() -> str:
+    """`<host>-<pid>`, lower-cased and reduced to the characters a worker id may hold."""
+    host = re.sub(r"[^a-z0-9_-]+", "-", socket.gethostname().lower()).strip("-") or "host"
+    suffix = f"-{os.getpid()}"
+    return host[: ID_MAX_CHARS - len(suffix)] + suffix
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line flags: member, worker id, weights, device, threads and Zenoh's."""
+    parser = argparse.ArgumentParser(
+        prog="python -m services.predictor", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument("--member", required=True, choices=MEMBERS, help="ensemble member")
+    parser.add_argument("--worker-id", default=None, help="unique id (default: <host>-<pid>)")
+    parser.add_argument("--weights-dir", type=Path, default=WEIGHTS_DIR, help="<member>.pt here")
+    parser.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=DEFAULT_SERVICES.predictor_threads,
+        help="torch CPU threads (default: one, as several workers share the machine)",
+    )
+    add_zenoh_arguments(parser)
+    return parser
+
+
+def run_cli(argv: list[str] | None = None) -> int:
+    """Parse flags, serve until SIGINT/SIGTERM; 0 on a clean stop, 2 on a one-line error."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    worker_id = args.worker_id or default_worker_id()
+    _check_flags(parser, args, worker_id)
+    _configure_logging(f"predictor[{args.member}/{worker_id}]")
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    try:
+        config = zenoh_config_from_args(args)
+        answered = main(
+            config, args.member, worker_id, args.weights_dir, args.device, args.threads, stop
+        )
+    except (WeightsError, ZenohConfigError) as error:
+        log.error("%s", error)
+        return EXIT_USAGE
+    log.info("stopped after answering %d queries", answered)
+    return 0
+
+
+def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace, worker_id: str) -> None:
+    """argparse-style one-line errors (exit 2) for flag values argparse cannot check itself."""
+    if not is_valid_id(worker_id):
+        parser.error(f"--worker-id {worker_id!r} must match [a-z0-9_-]{{1,{ID_MAX_CHARS}}}")
+    if not _DEVICE_PATTERN.fullmatch(args.device):
+        parser.error(f"--device {args.device!r} must be cpu, cuda or cuda:N")
+    if args.threads < 1:
+        parser.error(f"--threads must be at least 1, got {args.threads}")
+    if args.device.startswith("cuda") and not _cuda_available():
+        parser.error(f"--device {args.device}: no CUDA device is available")
+
+
+def _cuda_available() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
+
+
+def _configure_logging(process_name: str) -> None:
+    logging.basicConfig(
+        level=logging.INFO,
+        format=f"%(asctime)s {process_name} %(levelname)s %(message)s",
+        stream=sys.stderr,
+    )
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli())

@@ -1,0 +1,357 @@
+"""Predictor workers as real processes on loopback, and the planner's ZenohEnsemble client.
+
+The test process opens the hub session on a free loopback port; workers are spawned with
+subprocess (never forked) against it, with tiny random-weight networks, and are all killed
+at teardown whatever happens.
+"""
+
+from __future__ import annotations
+
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+import torch
+
+from mapex.config import NetworkConfig, ServicesConfig
+from mapex.grid import FREE, OCCUPIED, UNKNOWN
+from mapex.prediction.base import MEMBER_NAMES, Predictor
+from mapex.prediction.learned import LearnedEnsemble
+from mapex.prediction.network import LamaGenerator
+from mapex.prediction.weights import save_weights
+from services.codec import encode_array, pack_message
+from services.ensemble_client import MembersMissingError, ZenohEnsemble
+from services.keys import alive_predictor_key, predict_key
+from services.messages import ErrorReply, PredictReply, PredictRequest, decode_message
+from services.predictor import MemberServer
+from services.zenoh_config import open_session, zenoh_config
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SMALL = NetworkConfig(channels=16, n_blocks=1, downscale=4, refine_channels=4)
+FAST = ServicesConfig(predict_timeout_s=3.0, liveliness_query_timeout_s=1.0)
+START_DEADLINE_S = 60.0  # six workers import torch at once on a shared 2-core machine
+STOP_DEADLINE_S = 5.0  # SIGINT to exit (DESIGN.md)
+QUANTUM = 1 / 255  # uint8 replies, plus float noise between processes
+# member -> worker ids started for the module: a replica of g, and a g2 worker to stop
+WORKERS = {"g": ("g-a", "g-b"), "g1": ("g1-a",), "g2": ("g2-a", "g2-stop"), "g3": ("g3-a",)}
+
+
+def _free_loopback_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def _until(condition, what: str, deadline_s: float = 5.0):
+    """Poll `condition` until truthy; fail naming `what` after `deadline_s`."""
+    deadline = time.monotonic() + deadline_s
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.02)
+    pytest.fail(f"timed out waiting for {what}")
+
+
+def partly_observed(shape=(64, 96), seed=0) -> np.ndarray:
+    """A room seen from inside plus scattered known cells, the rest unknown."""
+    observed = np.full(shape, UNKNOWN, dtype=np.uint8)
+    observed[8:40, 10:60] = FREE
+    observed[7, 9:61] = OCCUPIED
+    observed[8:40, 9] = OCCUPIED
+    rng = np.random.default_rng(seed)
+    scattered = rng.random(shape) < 0.05
+    observed[scattered] = rng.choice([FREE, OCCUPIED], scattered.sum())
+    return observed
+
+
+class WorkerPool:
+    """Predictor worker processes spawned against one hub; `kill_all` leaves none behind."""
+
+    def __init__(self, hub_endpoint: str, weights_dir: Path, log_dir: Path) -> None:
+        self.hub_endpoint = hub_endpoint
+        self.weights_dir = weights_dir
+        self.log_dir = log_dir
+        self.processes: dict[str, subprocess.Popen] = {}
+
+    def start(self, member: str, worker_id: str) -> subprocess.Popen:
+        command = [
+            sys.executable, "-m", "services.predictor", "--member", member,
+            "--worker-id", worker_id, "--weights-dir", str(self.weights_dir),
+            "--connect", self.hub_endpoint,
+        ]  # fmt: skip
+        with open(self.log_path(worker_id), "wb") as log:
+            process = subprocess.Popen(command, cwd=REPO_ROOT, stdout=log, stderr=log)
+        self.processes[worker_id] = process
+        return process
+
+    def log_path(self, worker_id: str) -> Path:
+        return self.log_dir / f"{worker_id}.log"
+
+    def log_of(self, worker_id: str) -> str:
+        return self.log_path(worker_id).read_text(errors="replace")
+
+    def wait_alive(self, ensemble: ZenohEnsemble, member: str, worker_id: str) -> None:
+        def alive() -> bool:
+            if self.processes[worker_id].poll() is not None:
+                pytest.fail(f"worker {worker_id} exited early:\n{self.log_of(worker_id)}")
+            return worker_id in ensemble.live_workers()[member]
+
+        _until(alive, f"worker {worker_id} to announce itself", START_DEADLINE_S)
+
+    def kill_all(self) -> None:
+        for process in self.processes.values():
+            if process.poll() is None:
+                process.kill()
+            process.wait(STOP_DEADLINE_S)
+
+
+@pytest.fixture(scope="module")
+def weights_dir(tmp_path_factory) -> Path:
+    directory = tmp_path_factory.mktemp("weights")
+    for index, name in enumerate(MEMBER_NAMES):
+        torch.manual_seed(index)
+        save_weights(directory / f"{name}.pt", LamaGenerator(SMALL), {"member": name})
+    return directory
+
+
+@pytest.fixture(scope="module")
+def hub():
+    endpoint = f"tcp/127.0.0.1:{_free_loopback_port()}"
+    session = open_session(zenoh_config(listen=[endpoint], connect=[]))
+    yield session, endpoint
+    session.close()
+
+
+@pytest.fixture(scope="module")
+def pool(hub, weights_dir, tmp_path_factory):
+    workers = WorkerPool(hub[1], weights_dir, tmp_path_factory.mktemp("logs"))
+    try:
+        for member, worker_ids in WORKERS.items():
+            for worker_id in worker_ids:
+                workers.start(member, worker_id)
+        yield workers
+    finally:
+        workers.kill_all()
+
+
+@pytest.fixture(scope="module")
+def ensemble(hub, pool):
+    client = ZenohEnsemble(hub[0], FAST)
+    try:
+        for member, worker_ids in WORKERS.items():
+            for worker_id in worker_ids:
+                pool.wait_alive(client, member, worker_id)
+        yield client
+    finally:
+        client.close()
+
+
+class RecordingSession:
+    """A session stand-in that keeps every reply of every get (gets run one after another)."""
+
+    def __init__(self, session) -> None:
+        self.session = session
+        self.gets: list[tuple[str, list]] = []
+
+    def liveliness(self):
+        return self.session.liveliness()
+
+    def get(self, key, **options):
+        replies = list(self.session.get(key, **options))
+        self.gets.append((str(key), replies))
+        return iter(replies)
+
+
+# ---------------------------------------------------------------------- real worker processes
+
+
+def test_predictions_match_the_in_process_ensemble(ensemble, weights_dir):
+    observed = partly_observed()
+    local = LearnedEnsemble(weights_dir).predict(observed)
+    remote = ensemble.predict(observed)
+    np.testing.assert_allclose(remote.members, local.members, atol=QUANTUM + 1e-6)
+    assert ensemble.last_answers.answered == (0, 1, 2, 3) and ensemble.last_answers.complete
+    region = (4, 50, 0, 70)
+    prediction, answers = ensemble.predict_ensemble(observed, region, members=(1, 2, 3))
+    assert answers.answered == (1, 2, 3)
+    local_region = LearnedEnsemble(weights_dir).predict(observed, region, members=(1, 2, 3))
+    np.testing.assert_allclose(prediction.members, local_region.members, atol=QUANTUM + 1e-6)
+    assert all(ms >= 0 for ms in answers.compute_ms.values())
+
+
+def test_replicas_share_queries_and_answer_each_exactly_once(hub, ensemble):
+    recording = RecordingSession(hub[0])
+    client = ZenohEnsemble(recording, FAST)
+    try:
+        assert client.wait_for_workers(("g",), count=2)
+        crop = partly_observed((40, 40), seed=1)
+        served = [client.predict_available(crop, (0,)).workers[0] for _ in range(8)]
+    finally:
+        client.close()
+    assert set(served) == {"g-a", "g-b"}
+    assert served.count("g-a") == served.count("g-b") == 4  # least recently used alternates
+    assert len(recording.gets) == 8
+    for key, replies in recording.gets:
+        assert len(replies) == 1 and replies[0].ok is not None
+        reply = PredictReply.decode(replies[0].ok.payload.to_bytes())
+        assert key == predict_key("g", reply.worker_id)
+
+
+def _malformed_payloads() -> dict[str, bytes]:
+    wrong_dtype = {"request_id": 1, "observed": encode_array(np.zeros((4, 4), np.float32))}
+    bad_codes = {"request_id": 1, "observed": encode_array(np.full((4, 4), 7, np.uint8))}
+    return {
+        "random bytes": np.random.default_rng(3).bytes(200),
+        "wrong schema": msgpack.packb({"schema": 99, "type": "predict_request"}),
+        "wrong type": ErrorReply("not a request").encode(),
+        "wrong dtype": pack_message("predict_request", wrong_dtype),
+        "bad codes": pack_message("predict_request", bad_codes),
+    }
+
+
+def test_malformed_requests_get_an_error_reply_and_the_worker_lives_on(hub, pool, ensemble):
+    session, key = hub[0], predict_key("g1", "g1-a")
+    for what, payload in _malformed_payloads().items():
+        replies = list(session.get(key, payload=payload, timeout=FAST.predict_timeout_s))
+        assert len(replies) == 1 and replies[0].err is not None, what
+        error = decode_message(replies[0].err.payload.to_bytes(), (ErrorReply,))
+        assert error.message.startswith("malformed predict request"), what
+    assert pool.processes["g1-a"].poll() is None
+    assert ensemble.predict_available(partly_observed(), (1,)).answered == (1,)
+    assert "refused a malformed request" in pool.log_of("g1-a")
+
+
+def test_a_killed_worker_is_reported_missing_and_the_others_answer(hub, pool, ensemble):
+    pool.processes["g3-a"].send_signal(signal.SIGKILL)
+    pool.processes["g3-a"].wait(STOP_DEADLINE_S)
+    try:
+        started = time.monotonic()
+        answers = ensemble.predict_available(partly_observed(), (0, 1, 2, 3))
+        assert time.monotonic() - started < FAST.predict_timeout_s + 2.0
+        assert answers.missing == (3,) and answers.answered == (0, 1, 2)
+        assert answers.probabilities.shape == (3, *partly_observed().shape)
+        with pytest.raises(MembersMissingError, match="g3"):
+            ensemble.predict_members(partly_observed(), (2, 3))
+        _until(lambda: not ensemble.live_workers()["g3"], "the token of the killed worker to go")
+    finally:  # a supervisor would restart it; so do we, for the other tests
+        pool.start("g3", "g3-b")
+        pool.wait_alive(ensemble, "g3", "g3-b")
+    assert ensemble.predict_available(partly_observed(), (3,)).workers == {3: "g3-b"}
+
+
+def test_sigint_stops_a_worker_cleanly(pool, ensemble):
+    process = pool.processes["g2-stop"]
+    process.send_signal(signal.SIGINT)
+    assert process.wait(STOP_DEADLINE_S) == 0
+    _until(lambda: "g2-stop" not in ensemble.live_workers()["g2"], "the token to be undeclared")
+    log = pool.log_of("g2-stop")
+    assert "stopped after answering" in log and "Traceback" not in log
+
+
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--member", "g", "--weights-dir", "{missing}"], "no weights file"),
+        (["--member", "g", "--worker-id", "Bad Id"], "'Bad Id' must match"),
+        (["--member", "g", "--listen", "tcp/127.0.0.1:99999"], "cannot open a Zenoh session"),
+    ],
+)
+def test_bad_flags_and_missing_weights_are_one_line_errors(flags, message, tmp_path, weights_dir):
+    flags = [f.format(missing=tmp_path / "none") for f in flags]
+    if "--weights-dir" not in flags:
+        flags += ["--weights-dir", str(weights_dir)]
+    result = subprocess.run(
+        [sys.executable, "-m", "services.predictor", *flags],
+        cwd=REPO_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2
+    assert message in result.stderr and "Traceback" not in result.stderr
+    assert sum(message in line for line in result.stderr.splitlines()) == 1
+
+
+# ---------------------------------------------------------------------- in-process pieces
+
+
+class ConstantPredictor(Predictor):
+    """Every member predicts 0.25 everywhere."""
+
+    def predict_members(self, observed, members):
+        return np.full((len(members), *observed.shape), 0.25, dtype=np.float32)
+
+
+@pytest.mark.parametrize("what", [*_malformed_payloads(), "no payload"])
+def test_member_server_refuses_malformed_payloads(what):
+    server = MemberServer(ConstantPredictor(), "g2", "w0")
+    payload = None if what == "no payload" else _malformed_payloads()[what]
+    reply = server.answer(payload)
+    assert isinstance(reply, ErrorReply) and "\n" not in reply.message
+    assert server.answered == 0
+
+
+def test_member_server_answers_a_request():
+    server = MemberServer(ConstantPredictor(), "g2", "w0")
+    reply = server.answer(PredictRequest(17, partly_observed((24, 30))).encode())
+    assert isinstance(reply, PredictReply)
+    assert (reply.request_id, reply.member, reply.worker_id) == (17, "g2", "w0")
+    np.testing.assert_allclose(reply.probabilities(), 0.25, atol=1 / 510)
+    assert server.answered == 1
+
+
+ROGUE_MODES = ["good", "garbage", "error", "wrong_request", "wrong_member", "wrong_shape"]
+
+
+@pytest.fixture
+def rogue_pair():
+    """A planner-side session and a second session where a hand-written 'worker' lives."""
+    endpoint = f"tcp/127.0.0.1:{_free_loopback_port()}"
+    planner = open_session(zenoh_config(listen=[endpoint], connect=[]))
+    rogue = open_session(zenoh_config(connect=[endpoint]))
+    yield planner, rogue
+    rogue.close()
+    planner.close()
+
+
+def _rogue_reply(mode: str, request: PredictRequest) -> bytes:
+    shape = (2, 2) if mode == "wrong_shape" else request.observed.shape
+    request_id = request.request_id + (1 if mode == "wrong_request" else 0)
+    member = "g1" if mode == "wrong_member" else "g"
+    probabilities = np.full(shape, 0.5, dtype=np.float32)
+    reply = PredictReply.from_probabilities(request_id, member, probabilities, "rogue", 1.0)
+    return {"garbage": b"\x00garbage", "error": ErrorReply("busy").encode()}.get(
+        mode, reply.encode()
+    )
+
+
+@pytest.mark.parametrize("mode", [*ROGUE_MODES, "silent"])
+def test_the_client_keeps_only_valid_replies(rogue_pair, mode):
+    planner, rogue = rogue_pair
+    key = predict_key("g", "rogue")
+
+    def answer(query):
+        request = PredictRequest.decode(query.payload.to_bytes())
+        query.reply(key, _rogue_reply(mode, request))
+
+    # a silent worker never reads its queries: they wait unanswered until the client's timeout
+    queryable = rogue.declare_queryable(key, None if mode == "silent" else answer)
+    token = rogue.liveliness().declare_token(alive_predictor_key("g", "rogue"))
+    services = ServicesConfig(predict_timeout_s=0.5, liveliness_query_timeout_s=0.5)
+    with ZenohEnsemble(planner, services) as client:
+        assert client.wait_for_workers(("g",), timeout_s=5.0)
+        crop = partly_observed((12, 10))
+        answers = client.predict_available(crop, (0, 1))  # g1 has no worker at all
+        assert answers.missing == ((1,) if mode == "good" else (0, 1))
+        if mode == "good":
+            assert answers.workers == {0: "rogue"}
+            np.testing.assert_allclose(answers.probabilities[0], 0.5, atol=1 / 510)
+    token.undeclare()
+    queryable.undeclare()
