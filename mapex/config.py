@@ -233,6 +233,7 @@ class ServicesConfig:
     liveliness_query_timeout_s: float = 2.0  # planner's start-up discovery of live workers
     predictor_threads: int = 1  # torch CPU threads of one predictor worker (DESIGN.md)
     predictor_drain_s: float = 3.0  # on shutdown, wait this long for the query being computed
+    world_drain_s: float = 2.0  # on shutdown, wait this long for the step being answered
 
 
 @dataclass(frozen=True)

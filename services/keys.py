@@ -24,6 +24,7 @@ KEY_PREFIX = "mapex/@v1"
 
 MEMBERS = MEMBER_NAMES  # ensemble members; "g" is G
 RESERVED_RUN_IDS = frozenset({"predict", "alive"})
+ROBOT_ID_PREFIX = "r"  # robot i of a run is "r<i>" in its keys
 ID_MAX_CHARS = 64  # part of the v1 contract, not a tunable
 _ID_PATTERN = re.compile(rf"[a-z0-9_-]{{1,{ID_MAX_CHARS}}}")
 
@@ -87,6 +88,11 @@ ParsedKey = RobotKey | RunKey | PredictKey | AliveKey
 def is_valid_id(value: object) -> bool:
     """Whether `value` may be a run, robot or worker id (one key chunk, no wildcard)."""
     return isinstance(value, str) and _ID_PATTERN.fullmatch(value) is not None
+
+
+def robot_id(robot: int) -> str:
+    """The wire id of robot index `robot`: `r0`, `r1`, ..."""
+    return f"{ROBOT_ID_PREFIX}{robot}"
 
 
 def robot_key(run: str, robot: str, topic: RobotTopic) -> str:

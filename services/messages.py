@@ -99,21 +99,27 @@ def decode_message(
 class StepRequest(Message):
     """Planner -> world query on `step`: drive through `cells` int32 (k, 2) in order, then scan.
 
-    k = 0 asks for a scan where the robot stands (the initial scan). The reply is a ScanReply.
+    seq: the robot's step number, 0 for its first request, then one more per step. A world
+    answers a repeat of the last seq it served with the same reply without moving the robot
+    again, so a retry after a lost reply is harmless; any other seq is refused.
+    k = 0 asks for a scan where the robot stands (seq 0: the initial scan before t = 0).
+    The reply is a ScanReply.
     """
 
     TYPE: ClassVar[str] = "step_request"
+    seq: int
     cells: np.ndarray
 
     def __post_init__(self) -> None:
+        _set(self, "seq", _checked_count(self.TYPE, "seq", self.seq))
         _set(self, "cells", _checked_cells(self.TYPE, "cells", self.cells))
 
     def _fields(self, config: ServicesConfig) -> dict[str, Any]:
-        return {"cells": encode_array(self.cells, config)}
+        return {"seq": self.seq, "cells": encode_array(self.cells, config)}
 
     @classmethod
     def _read(cls, reader: FieldReader) -> StepRequest:
-        return cls(reader.array("cells", "int32", 2))
+        return cls(reader.integer("seq"), reader.array("cells", "int32", 2))
 
 
 @dataclass(frozen=True, eq=False)

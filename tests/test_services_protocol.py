@@ -176,8 +176,8 @@ def _sample_messages() -> list[Message]:
     cells = rng.integers(0, 200, size=(6, 2)).astype(np.int32)
     occupancy = rng.random((30, 20)) < 0.3
     return [
-        StepRequest(cells[:3]),
-        StepRequest(np.empty((0, 2), np.int32)),
+        StepRequest(4, cells[:3]),
+        StepRequest(0, np.empty((0, 2), np.int32)),
         ScanReply(
             (12, 34),
             rng.integers(1, 400, 2500).astype(np.uint16),
@@ -250,8 +250,8 @@ def test_error_reply_text_is_made_one_line():
 
 
 def test_cells_given_as_python_lists_become_int32():
-    assert StepRequest([[1, 2], [3, 4]]).cells.dtype == np.int32
-    assert StepRequest([]).cells.shape == (0, 2)
+    assert StepRequest(1, [[1, 2], [3, 4]]).cells.dtype == np.int32
+    assert StepRequest(0, []).cells.shape == (0, 2)
 
 
 def test_quantisation_error_is_at_most_half_a_level():
@@ -398,12 +398,22 @@ def _packed(message: Message, name: str, wire: dict) -> bytes:
     [
         (  # cells must be (k, 2)
             _packed(
-                StepRequest([[1, 2]]),
+                StepRequest(1, [[1, 2]]),
                 "cells",
                 {"dtype": "int32", "shape": [1, 3], "zlib": False, "data": bytes(12)},
             ),
             StepRequest.decode,
             r"\(k, 2\)",
+        ),
+        (  # the step sequence number is a non-negative integer on the wire too
+            _packed(StepRequest(1, [[1, 2]]), "seq", -3),
+            StepRequest.decode,
+            "seq must be a non-negative",
+        ),
+        (
+            _packed(StepRequest(1, [[1, 2]]), "seq", "1"),
+            StepRequest.decode,
+            "field 'seq' must be an integer",
         ),
         (  # cells must be int32 on the wire even though int64 would hold them
             _packed(
@@ -546,9 +556,11 @@ def test_corrupted_payloads_decode_or_raise_protocol_errors_only(message):
 @pytest.mark.parametrize(
     "build, match",
     [
-        (lambda: StepRequest(np.zeros((2, 3), np.int32)), r"\(k, 2\)"),
-        (lambda: StepRequest(np.array([[0.5, 1.0]])), "integer cells"),
-        (lambda: StepRequest([[-1, 2]]), "negative"),
+        (lambda: StepRequest(0, np.zeros((2, 3), np.int32)), r"\(k, 2\)"),
+        (lambda: StepRequest(0, np.array([[0.5, 1.0]])), "integer cells"),
+        (lambda: StepRequest(0, [[-1, 2]]), "negative"),
+        (lambda: StepRequest(-1, []), "seq"),
+        (lambda: StepRequest(True, []), "seq"),
         (lambda: PredictRequest(-1, _OBSERVED), "request_id"),
         (lambda: PredictRequest(1, _OBSERVED.astype(np.float32)), "uint8"),
         (lambda: MapMessage(0, "observed", _OBSERVED + 1), "codes other than"),

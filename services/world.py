@@ -1,0 +1,339 @@
+"""The world simulator: owns the ground truth and the robots, answers step queries with scans.
+
+    python -m services.world --run RUN_ID [--world default|generated:SEED|KTH_DIR]
+        [--robots 1] [--starts 0[,1,...]] [--mode ...] [--connect ...] [--listen ...]
+
+Robot i of the run is `r<i>` on the wire and starts at start pose `--starts[i]` (an index
+into `mapex.worlds.start_poses`, 0-3: the corners of the valid space). The process declares,
+for each robot, a queryable on `mapex/@v1/<run>/<robot>/step` that answers a StepRequest with
+the ScanReply taken after the motion (or an ErrorReply saying why it refused), and publishes
+after each step the robot's PoseMessage on `pose` and the ScanReply on `scan`. WorldInfo and
+GroundTruth are published once at start on `mapex/@v1/<run>/world_info` and `.../ground_truth`
+and served on the same keys, so a late joiner gets them with a `get`. Then it declares the
+liveliness token `mapex/@v1/alive/world/<run>` (a live token means every queryable is there).
+
+Steps carry a per-robot sequence number (StepRequest.seq): a repeat of the last one served gets
+the cached reply without moving the robot, so a planner may retry a query whose reply was lost.
+Queries are answered on serving threads, never on Zenoh's own. SIGINT/SIGTERM undeclare
+everything, close the session and exit 0. Bad world, starts or flags: one line, exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from collections.abc import Callable, Sequence
+
+import zenoh
+
+from mapex.config import ExplorationConfig, ServicesConfig
+from mapex.simulator import MotionError, Simulator
+from mapex.worlds import DEFAULT_SPEC, World, WorldError, load_world, start_poses
+from services.codec import DEFAULT_SERVICES, Payload, ProtocolError
+from services.keys import (
+    ID_MAX_CHARS,
+    RESERVED_RUN_IDS,
+    alive_world_key,
+    is_valid_id,
+    robot_id,
+    robot_key,
+    run_key,
+)
+from services.messages import (
+    ErrorReply,
+    GroundTruth,
+    Message,
+    PoseMessage,
+    ScanReply,
+    StepRequest,
+    WorldInfo,
+)
+from services.zenoh_config import (
+    ZenohConfigError,
+    add_zenoh_arguments,
+    open_session,
+    zenoh_config_from_args,
+)
+
+EXIT_USAGE = 2  # bad flags, world or starts, unusable Zenoh configuration
+DEFAULT_EXPLORATION = ExplorationConfig()
+_STOP_POLL_S = 0.5  # how often the main thread looks up from waiting (signals run meanwhile)
+
+log = logging.getLogger("services.world")
+
+StepListener = Callable[[int, int, ScanReply], None]
+"""Called with (robot index, seq, reply) after each step that moved or scanned anew."""
+
+
+class StartError(ValueError):
+    """A start index that names no start pose of the world; the message is one line."""
+
+
+class WorldServer:
+    """Turns step payloads into scans for the robots of one world; knows nothing of Zenoh.
+
+    Robot i starts at `start_poses(world)[start_indices[i]]`. `answer_step` never raises on
+    bad input; it serialises steps, so serving threads of several robots may call it at once.
+    `on_step` (settable) hears of every fresh step, e.g. to publish it.
+    """
+
+    def __init__(
+        self,
+        world: World,
+        start_indices: Sequence[int],
+        config: ExplorationConfig = DEFAULT_EXPLORATION,
+        on_step: StepListener | None = None,
+    ) -> None:
+        if not start_indices:
+            raise StartError("a world needs at least one robot")
+        candidates = start_poses(world, config.world.start_clearance_cells)
+        for index in start_indices:
+            if not 0 <= index < len(candidates):
+                raise StartError(f"start {index} is not one of 0-{len(candidates) - 1}")
+        self.world = world
+        self.starts = [candidates[index] for index in start_indices]
+        self.simulator = Simulator(world, self.starts, config.sensor, config.motion)
+        self.on_step = on_step
+        self.served = 0  # fresh steps served, all robots together
+        self._last_seq: list[int | None] = [None] * len(self.starts)
+        self._last_reply: list[ScanReply | None] = [None] * len(self.starts)
+        self._lock = threading.Lock()
+
+    @property
+    def n_robots(self) -> int:
+        return len(self.starts)
+
+    def world_info(self) -> WorldInfo:
+        """Name, shape, cell size and the start cells of this server's robots."""
+        world = self.world
+        return WorldInfo(world.name, world.shape, world.resolution_m, self.starts)
+
+    def ground_truth(self) -> GroundTruth:
+        """The walls and valid space of the world."""
+        return GroundTruth.from_world(self.world)
+
+    def answer_step(self, robot: int, payload: Payload | None) -> ScanReply | ErrorReply:
+        """The ScanReply for a valid StepRequest payload of robot `robot`, else an ErrorReply."""
+        try:
+            if not 0 <= robot < self.n_robots:
+                raise ProtocolError(f"robot {robot} is not one of 0-{self.n_robots - 1}")
+            if payload is None:
+                raise ProtocolError("the query carries no payload")
+            request = StepRequest.decode(payload)
+        except ProtocolError as error:
+            log.warning("refused a malformed step request: %s", error)
+            return ErrorReply(f"malformed step request: {error}")
+        with self._lock:
+            return self._step(robot, request)
+
+    def _step(self, robot: int, request: StepRequest) -> ScanReply | ErrorReply:
+        last = self._last_seq[robot]
+        if last is not None and request.seq == last:
+            return self._last_reply[robot]  # a retry: same reply, no motion
+        expected = 0 if last is None else last + 1
+        if request.seq != expected:
+            return self._refuse(
+                robot, f"step seq {request.seq} is out of order, expected {expected}"
+            )
+        try:
+            reply = ScanReply.from_scan(self.simulator.step(robot, request.cells))
+        except MotionError as error:
+            return self._refuse(robot, f"refused motion: {error}")
+        self._last_seq[robot], self._last_reply[robot] = request.seq, reply
+        self.served += 1
+        if self.on_step is not None:
+            self.on_step(robot, request.seq, reply)
+        return reply
+
+    def _refuse(self, robot: int, why: str) -> ErrorReply:
+        log.warning("robot %s: %s", robot_id(robot), why)
+        return ErrorReply(f"robot {robot_id(robot)}: {why}")
+
+
+def serve(
+    session: zenoh.Session,
+    server: WorldServer,
+    run: str,
+    stop: threading.Event,
+    services: ServicesConfig = DEFAULT_SERVICES,
+) -> int:
+    """Serve `server`'s world for `run` on `session` until `stop` is set; return steps served."""
+    publishers = _declare_step_publishers(session, server, run)
+    server.on_step = _step_publisher(publishers)
+    info, truth = server.world_info(), server.ground_truth()
+    answers: dict[str, Callable[[Payload | None], Message]] = {
+        run_key(run, "world_info"): lambda _: info,
+        run_key(run, "ground_truth"): lambda _: truth,
+    }
+    for robot in range(server.n_robots):
+        answers[robot_key(run, robot_id(robot), "step")] = _step_answerer(server, robot)
+    queryables = [session.declare_queryable(key) for key in answers]
+    threads = [
+        threading.Thread(
+            target=_answer_queries, args=(q, key, answer), name=f"serve {key}", daemon=True
+        )
+        for q, (key, answer) in zip(queryables, answers.items(), strict=True)
+    ]
+    for thread in threads:
+        thread.start()
+    session.put(run_key(run, "world_info"), info.encode())
+    session.put(run_key(run, "ground_truth"), truth.encode())
+    token = session.liveliness().declare_token(alive_world_key(run))
+    log.info(
+        "serving world %s %s for run %s: robots at %s", info.name, info.shape, run, server.starts
+    )
+    try:
+        while not stop.wait(_STOP_POLL_S):
+            pass
+    finally:
+        token.undeclare()
+        for queryable in queryables:
+            queryable.undeclare()  # ends its serving thread's iteration
+        for thread in threads:
+            thread.join(services.world_drain_s)
+        for publisher in publishers.values():
+            publisher.undeclare()
+    return server.served
+
+
+def _declare_step_publishers(
+    session: zenoh.Session, server: WorldServer, run: str
+) -> dict[tuple[int, str], zenoh.Publisher]:
+    """A `pose` and a `scan` publisher per robot, keyed by (robot index, topic)."""
+    return {
+        (robot, topic): session.declare_publisher(robot_key(run, robot_id(robot), topic))
+        for robot in range(server.n_robots)
+        for topic in ("pose", "scan")
+    }
+
+
+def _step_publisher(publishers: dict[tuple[int, str], zenoh.Publisher]) -> StepListener:
+    """Publish a fresh step's pose (t = seq: the initial scan is t = 0) and its scan."""
+
+    def publish(robot: int, seq: int, reply: ScanReply) -> None:
+        publishers[robot, "pose"].put(PoseMessage(seq, reply.pose).encode())
+        publishers[robot, "scan"].put(reply.encode())
+
+    return publish
+
+
+def _step_answerer(server: WorldServer, robot: int) -> Callable[[Payload | None], Message]:
+    return lambda payload: server.answer_step(robot, payload)
+
+
+def _answer_queries(
+    queryable: zenoh.Queryable, key: str, answer: Callable[[Payload | None], Message]
+) -> None:
+    """Answer queries in arrival order until the queryable is undeclared."""
+    for query in queryable:
+        with query:  # leaving the block finalises the query: the querier stops waiting
+            payload = None if query.payload is None else query.payload.to_bytes()
+            reply = answer(payload)
+            try:
+                if isinstance(reply, ErrorReply):
+                    query.reply_err(reply.encode())
+                else:
+                    query.reply(key, reply.encode())
+            except zenoh.ZError as error:  # e.g. the querier left; the next query is unaffected
+                log.warning("could not send a reply: %s", " ".join(str(error).split()))
+
+
+def main(
+    config: zenoh.Config,
+    world: World,
+    run: str,
+    start_indices: Sequence[int],
+    stop: threading.Event | None = None,
+    exploration: ExplorationConfig = DEFAULT_EXPLORATION,
+    services: ServicesConfig = DEFAULT_SERVICES,
+) -> int:
+    """Serve `world` for `run` with robots at `start_indices` until `stop` is set.
+
+    Returns the steps served. Raises StartError or WorldError (bad starts, no start pose) before
+    any network set-up, and ZenohConfigError when the session is refused.
+    """
+    server = WorldServer(world, start_indices, exploration)
+    session = open_session(config)
+    try:
+        return serve(session, server, run, stop or threading.Event(), services)
+    finally:
+        session.close()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line flags: world, run, robots, starts and Zenoh's."""
+    parser = argparse.ArgumentParser(
+        prog="python -m services.world", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument(
+        "--world",
+        default=DEFAULT_SPEC,
+        help="'default', 'generated:<seed>' or a KTH map directory (default: %(default)s)",
+    )
+    parser.add_argument("--run", required=True, help="run id, the <run> chunk of the keys")
+    parser.add_argument("--robots", type=int, default=1, help="number of robots (default: 1)")
+    parser.add_argument(
+        "--starts",
+        type=_start_list,
+        default=None,
+        help="comma-separated start index (0-3) of each robot (default: 0,1,... per robot)",
+    )
+    add_zenoh_arguments(parser)
+    return parser
+
+
+def run_cli(argv: list[str] | None = None) -> int:
+    """Parse flags, serve until SIGINT/SIGTERM; 0 on a clean stop, 2 on a one-line error."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    starts = list(range(args.robots)) if args.starts is None else args.starts
+    _check_flags(parser, args, starts)
+    _configure_logging(f"world[{args.run}]")
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    try:
+        config = zenoh_config_from_args(args)
+        world = load_world(args.world)
+        served = main(config, world, args.run, starts, stop)
+    except (WorldError, StartError, ZenohConfigError) as error:
+        log.error("%s", error)
+        return EXIT_USAGE
+    log.info("stopped after serving %d steps", served)
+    return 0
+
+
+def _start_list(text: str) -> list[int]:
+    """argparse type of --starts: non-negative integers separated by commas."""
+    items = text.split(",")
+    if not all(item.strip().isascii() and item.strip().isdigit() for item in items):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of start indices")
+    return [int(item) for item in items]
+
+
+def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace, starts: list[int]):
+    """argparse-style one-line errors (exit 2) for flag values argparse cannot check itself."""
+    if not is_valid_id(args.run) or args.run in RESERVED_RUN_IDS:
+        parser.error(
+            f"--run {args.run!r} must match [a-z0-9_-]{{1,{ID_MAX_CHARS}}} "
+            f"and not be {' or '.join(sorted(RESERVED_RUN_IDS))}"
+        )
+    if args.robots < 1:
+        parser.error(f"--robots must be at least 1, got {args.robots}")
+    if len(starts) != args.robots:
+        parser.error(f"--starts names {len(starts)} starts for {args.robots} robots")
+
+
+def _configure_logging(process_name: str) -> None:
+    logging.basicConfig(
+        level=logging.INFO,
+        format=f"%(asctime)s {process_name} %(levelname)s %(message)s",
+        stream=sys.stderr,
+    )
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli())
