@@ -19,7 +19,6 @@ import argparse
 import logging
 import os
 import re
-import signal
 import socket
 import sys
 import threading
@@ -34,6 +33,7 @@ from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
 from services.codec import DEFAULT_SERVICES, Payload, ProtocolError
 from services.keys import ID_MAX_CHARS, MEMBERS, alive_predictor_key, is_valid_id, predict_key
 from services.messages import ErrorReply, PredictReply, PredictRequest
+from services.serving import QueryServers, configure_logging, stop_on_signals, wait_for
 from services.zenoh_config import (
     ZenohConfigError,
     add_zenoh_arguments,
@@ -43,7 +43,6 @@ from services.zenoh_config import (
 
 EXIT_USAGE = 2  # bad flags, missing weights, unusable Zenoh configuration
 _DEVICE_PATTERN = re.compile(r"cpu|cuda(:\d+)?")
-_STOP_POLL_S = 0.5  # how often the main thread looks up from waiting (signals run meanwhile)
 
 log = logging.getLogger("services.predictor")
 
@@ -88,36 +87,15 @@ def serve(
 ) -> int:
     """Serve `server`'s member on `session` until `stop` is set; return the queries answered."""
     key = predict_key(server.member, server.worker_id)
-    queryable = session.declare_queryable(key)
+    servers = QueryServers(session, {key: server.answer})
     token = session.liveliness().declare_token(alive_predictor_key(server.member, server.worker_id))
-    thread = threading.Thread(
-        target=_answer_queries, args=(queryable, key, server), name="serve", daemon=True
-    )
-    thread.start()
     log.info("serving member %s on %s", server.member, key)
     try:
-        while not stop.wait(_STOP_POLL_S):
-            pass
+        wait_for(stop)
     finally:
         token.undeclare()
-        queryable.undeclare()  # ends the serving thread's iteration
-        thread.join(services.predictor_drain_s)
+        servers.close(services.predictor_drain_s)
     return server.answered
-
-
-def _answer_queries(queryable: zenoh.Queryable, key: str, server: MemberServer) -> None:
-    """Answer queries in arrival order until the queryable is undeclared."""
-    for query in queryable:
-        with query:  # leaving the block finalises the query: the querier stops waiting
-            payload = None if query.payload is None else query.payload.to_bytes()
-            reply = server.answer(payload)
-            try:
-                if isinstance(reply, ErrorReply):
-                    query.reply_err(reply.encode())
-                else:
-                    query.reply(key, reply.encode())
-            except zenoh.ZError as error:  # e.g. the querier left; the next query is unaffected
-                log.warning("could not send a reply: %s", " ".join(str(error).split()))
 
 
 def main(
@@ -178,10 +156,8 @@ def run_cli(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     worker_id = args.worker_id or default_worker_id()
     _check_flags(parser, args, worker_id)
-    _configure_logging(f"predictor[{args.member}/{worker_id}]")
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    configure_logging(f"predictor[{args.member}/{worker_id}]")
+    stop = stop_on_signals()
     try:
         config = zenoh_config_from_args(args)
         answered = main(
@@ -210,14 +186,6 @@ def _cuda_available() -> bool:
     import torch
 
     return torch.cuda.is_available()
-
-
-def _configure_logging(process_name: str) -> None:
-    logging.basicConfig(
-        level=logging.INFO,
-        format=f"%(asctime)s {process_name} %(levelname)s %(message)s",
-        stream=sys.stderr,
-    )
 
 
 if __name__ == "__main__":

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
 import threading
 from collections.abc import Callable, Sequence
@@ -45,12 +44,12 @@ from services.keys import (
 from services.messages import (
     ErrorReply,
     GroundTruth,
-    Message,
     PoseMessage,
     ScanReply,
     StepRequest,
     WorldInfo,
 )
+from services.serving import Answer, QueryServers, configure_logging, stop_on_signals, wait_for
 from services.zenoh_config import (
     ZenohConfigError,
     add_zenoh_arguments,
@@ -60,7 +59,6 @@ from services.zenoh_config import (
 
 EXIT_USAGE = 2  # bad flags, world or starts, unusable Zenoh configuration
 DEFAULT_EXPLORATION = ExplorationConfig()
-_STOP_POLL_S = 0.5  # how often the main thread looks up from waiting (signals run meanwhile)
 
 log = logging.getLogger("services.world")
 
@@ -164,21 +162,13 @@ def serve(
     publishers = _declare_step_publishers(session, server, run)
     server.on_step = _step_publisher(publishers)
     info, truth = server.world_info(), server.ground_truth()
-    answers: dict[str, Callable[[Payload | None], Message]] = {
+    answers: dict[str, Answer] = {
         run_key(run, "world_info"): lambda _: info,
         run_key(run, "ground_truth"): lambda _: truth,
     }
     for robot in range(server.n_robots):
         answers[robot_key(run, robot_id(robot), "step")] = _step_answerer(server, robot)
-    queryables = [session.declare_queryable(key) for key in answers]
-    threads = [
-        threading.Thread(
-            target=_answer_queries, args=(q, key, answer), name=f"serve {key}", daemon=True
-        )
-        for q, (key, answer) in zip(queryables, answers.items(), strict=True)
-    ]
-    for thread in threads:
-        thread.start()
+    servers = QueryServers(session, answers)
     session.put(run_key(run, "world_info"), info.encode())
     session.put(run_key(run, "ground_truth"), truth.encode())
     token = session.liveliness().declare_token(alive_world_key(run))
@@ -186,14 +176,10 @@ def serve(
         "serving world %s %s for run %s: robots at %s", info.name, info.shape, run, server.starts
     )
     try:
-        while not stop.wait(_STOP_POLL_S):
-            pass
+        wait_for(stop)
     finally:
         token.undeclare()
-        for queryable in queryables:
-            queryable.undeclare()  # ends its serving thread's iteration
-        for thread in threads:
-            thread.join(services.world_drain_s)
+        servers.close(services.world_drain_s)
         for publisher in publishers.values():
             publisher.undeclare()
     return server.served
@@ -220,25 +206,8 @@ def _step_publisher(publishers: dict[tuple[int, str], zenoh.Publisher]) -> StepL
     return publish
 
 
-def _step_answerer(server: WorldServer, robot: int) -> Callable[[Payload | None], Message]:
+def _step_answerer(server: WorldServer, robot: int) -> Answer:
     return lambda payload: server.answer_step(robot, payload)
-
-
-def _answer_queries(
-    queryable: zenoh.Queryable, key: str, answer: Callable[[Payload | None], Message]
-) -> None:
-    """Answer queries in arrival order until the queryable is undeclared."""
-    for query in queryable:
-        with query:  # leaving the block finalises the query: the querier stops waiting
-            payload = None if query.payload is None else query.payload.to_bytes()
-            reply = answer(payload)
-            try:
-                if isinstance(reply, ErrorReply):
-                    query.reply_err(reply.encode())
-                else:
-                    query.reply(key, reply.encode())
-            except zenoh.ZError as error:  # e.g. the querier left; the next query is unaffected
-                log.warning("could not send a reply: %s", " ".join(str(error).split()))
 
 
 def main(
@@ -291,10 +260,8 @@ def run_cli(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     starts = list(range(args.robots)) if args.starts is None else args.starts
     _check_flags(parser, args, starts)
-    _configure_logging(f"world[{args.run}]")
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    configure_logging(f"world[{args.run}]")
+    stop = stop_on_signals()
     try:
         config = zenoh_config_from_args(args)
         world = load_world(args.world)
@@ -325,14 +292,6 @@ def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace, star
         parser.error(f"--robots must be at least 1, got {args.robots}")
     if len(starts) != args.robots:
         parser.error(f"--starts names {len(starts)} starts for {args.robots} robots")
-
-
-def _configure_logging(process_name: str) -> None:
-    logging.basicConfig(
-        level=logging.INFO,
-        format=f"%(asctime)s {process_name} %(levelname)s %(message)s",
-        stream=sys.stderr,
-    )
 
 
 if __name__ == "__main__":

@@ -15,3 +15,16 @@ def kth_dev_dir() -> Path:
     if not KTH_DEV_DIR.is_dir():
         pytest.skip("development maps ../shared/data/kth_dev are not present")
     return KTH_DEV_DIR
+
+
+@pytest.fixture(scope="module")
+def hub():
+    """A Zenoh session listening on a free loopback port: (session, endpoint) for services."""
+    from service_processes import free_loopback_port
+
+    from services.zenoh_config import open_session, zenoh_config
+
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    session = open_session(zenoh_config(listen=[endpoint], connect=[]))
+    yield session, endpoint
+    session.close()

@@ -8,7 +8,6 @@ at teardown whatever happens.
 from __future__ import annotations
 
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -18,6 +17,13 @@ import msgpack
 import numpy as np
 import pytest
 import torch
+from service_processes import (
+    REPO_ROOT,
+    STOP_DEADLINE_S,
+    ServiceProcesses,
+    free_loopback_port,
+    until,
+)
 
 from mapex.config import NetworkConfig, ServicesConfig
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
@@ -32,31 +38,12 @@ from services.messages import ErrorReply, PredictReply, PredictRequest, decode_m
 from services.predictor import MemberServer
 from services.zenoh_config import open_session, zenoh_config
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 SMALL = NetworkConfig(channels=16, n_blocks=1, downscale=4, refine_channels=4)
 FAST = ServicesConfig(predict_timeout_s=3.0, liveliness_query_timeout_s=1.0)
 START_DEADLINE_S = 60.0  # six workers import torch at once on a shared 2-core machine
-STOP_DEADLINE_S = 5.0  # SIGINT to exit (DESIGN.md)
 QUANTUM = 1 / 255  # uint8 replies, plus float noise between processes
 # member -> worker ids started for the module: a replica of g, and a g2 worker to stop
 WORKERS = {"g": ("g-a", "g-b"), "g1": ("g1-a",), "g2": ("g2-a", "g2-stop"), "g3": ("g3-a",)}
-
-
-def _free_loopback_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-def _until(condition, what: str, deadline_s: float = 5.0):
-    """Poll `condition` until truthy; fail naming `what` after `deadline_s`."""
-    deadline = time.monotonic() + deadline_s
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.02)
-    pytest.fail(f"timed out waiting for {what}")
 
 
 def partly_observed(shape=(64, 96), seed=0) -> np.ndarray:
@@ -71,45 +58,22 @@ def partly_observed(shape=(64, 96), seed=0) -> np.ndarray:
     return observed
 
 
-class WorkerPool:
-    """Predictor worker processes spawned against one hub; `kill_all` leaves none behind."""
+class WorkerPool(ServiceProcesses):
+    """Predictor worker processes spawned against one hub."""
 
     def __init__(self, hub_endpoint: str, weights_dir: Path, log_dir: Path) -> None:
-        self.hub_endpoint = hub_endpoint
+        super().__init__(hub_endpoint, log_dir)
         self.weights_dir = weights_dir
-        self.log_dir = log_dir
-        self.processes: dict[str, subprocess.Popen] = {}
 
-    def start(self, member: str, worker_id: str) -> subprocess.Popen:
-        command = [
-            sys.executable, "-m", "services.predictor", "--member", member,
-            "--worker-id", worker_id, "--weights-dir", str(self.weights_dir),
-            "--connect", self.hub_endpoint,
-        ]  # fmt: skip
-        with open(self.log_path(worker_id), "wb") as log:
-            process = subprocess.Popen(command, cwd=REPO_ROOT, stdout=log, stderr=log)
-        self.processes[worker_id] = process
-        return process
-
-    def log_path(self, worker_id: str) -> Path:
-        return self.log_dir / f"{worker_id}.log"
-
-    def log_of(self, worker_id: str) -> str:
-        return self.log_path(worker_id).read_text(errors="replace")
+    def start(self, member: str, worker_id: str):
+        return self.spawn(
+            worker_id, "services.predictor", "--member", member, "--worker-id", worker_id,
+            "--weights-dir", str(self.weights_dir),
+        )  # fmt: skip
 
     def wait_alive(self, ensemble: ZenohEnsemble, member: str, worker_id: str) -> None:
-        def alive() -> bool:
-            if self.processes[worker_id].poll() is not None:
-                pytest.fail(f"worker {worker_id} exited early:\n{self.log_of(worker_id)}")
-            return worker_id in ensemble.live_workers()[member]
-
-        _until(alive, f"worker {worker_id} to announce itself", START_DEADLINE_S)
-
-    def kill_all(self) -> None:
-        for process in self.processes.values():
-            if process.poll() is None:
-                process.kill()
-            process.wait(STOP_DEADLINE_S)
+        announced = lambda: worker_id in ensemble.live_workers()[member]  # noqa: E731
+        self.wait_until_announced(worker_id, announced, START_DEADLINE_S)
 
 
 @pytest.fixture(scope="module")
@@ -119,14 +83,6 @@ def weights_dir(tmp_path_factory) -> Path:
         torch.manual_seed(index)
         save_weights(directory / f"{name}.pt", LamaGenerator(SMALL), {"member": name})
     return directory
-
-
-@pytest.fixture(scope="module")
-def hub():
-    endpoint = f"tcp/127.0.0.1:{_free_loopback_port()}"
-    session = open_session(zenoh_config(listen=[endpoint], connect=[]))
-    yield session, endpoint
-    session.close()
 
 
 @pytest.fixture(scope="module")
@@ -239,7 +195,7 @@ def test_a_killed_worker_is_reported_missing_and_the_others_answer(hub, pool, en
         assert answers.probabilities.shape == (3, *partly_observed().shape)
         with pytest.raises(MembersMissingError, match="g3"):
             ensemble.predict_members(partly_observed(), (2, 3))
-        _until(lambda: not ensemble.live_workers()["g3"], "the token of the killed worker to go")
+        until(lambda: not ensemble.live_workers()["g3"], "the token of the killed worker to go")
     finally:  # a supervisor would restart it; so do we, for the other tests
         pool.start("g3", "g3-b")
         pool.wait_alive(ensemble, "g3", "g3-b")
@@ -250,7 +206,7 @@ def test_sigint_stops_a_worker_cleanly(pool, ensemble):
     process = pool.processes["g2-stop"]
     process.send_signal(signal.SIGINT)
     assert process.wait(STOP_DEADLINE_S) == 0
-    _until(lambda: "g2-stop" not in ensemble.live_workers()["g2"], "the token to be undeclared")
+    until(lambda: "g2-stop" not in ensemble.live_workers()["g2"], "the token to be undeclared")
     log = pool.log_of("g2-stop")
     assert "stopped after answering" in log and "Traceback" not in log
 
@@ -313,7 +269,7 @@ ROGUE_MODES = ["good", "garbage", "error", "wrong_request", "wrong_member", "wro
 @pytest.fixture
 def rogue_pair():
     """A planner-side session and a second session where a hand-written 'worker' lives."""
-    endpoint = f"tcp/127.0.0.1:{_free_loopback_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     planner = open_session(zenoh_config(listen=[endpoint], connect=[]))
     rogue = open_session(zenoh_config(connect=[endpoint]))
     yield planner, rogue

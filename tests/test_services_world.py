@@ -8,15 +8,13 @@ whatever happens.
 from __future__ import annotations
 
 import signal
-import socket
 import subprocess
 import sys
-import time
-from pathlib import Path
 
 import msgpack
 import numpy as np
 import pytest
+from service_processes import REPO_ROOT, STOP_DEADLINE_S, ServiceProcesses, until
 
 from mapex.config import ExplorationConfig, SensorConfig
 from mapex.simulator import Simulator
@@ -36,31 +34,12 @@ from services.messages import (
 from services.world import StartError, WorldServer
 from services.zenoh_config import open_session, zenoh_config
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 WORLD_SPEC = "generated:3"
 RUN = "world_test"
 STARTS = (0, 2, 3)  # r0 drives and is compared, r1 retries, r2 takes the bad requests
 QUERY_TIMEOUT_S = 5.0
 START_DEADLINE_S = 60.0  # imports and numba cache loads on a shared 2-core machine
-STOP_DEADLINE_S = 5.0  # SIGINT to exit (DESIGN.md)
 NEIGHBOURS = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc])
-
-
-def _free_loopback_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-def _until(condition, what: str, deadline_s: float = 5.0):
-    """Poll `condition` until truthy; fail naming `what` after `deadline_s`."""
-    deadline = time.monotonic() + deadline_s
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.02)
-    pytest.fail(f"timed out waiting for {what}")
 
 
 def random_walk(occupancy: np.ndarray, start, n_steps: int, cells_per_step: int, seed: int):
@@ -78,56 +57,22 @@ def random_walk(occupancy: np.ndarray, start, n_steps: int, cells_per_step: int,
     return steps
 
 
-class WorldProcesses:
-    """World processes spawned against one hub; `kill_all` leaves none behind."""
+class WorldProcesses(ServiceProcesses):
+    """World processes spawned against one hub."""
 
-    def __init__(self, hub_endpoint: str, log_dir: Path) -> None:
-        self.hub_endpoint = hub_endpoint
-        self.log_dir = log_dir
-        self.processes: dict[str, subprocess.Popen] = {}
-
-    def start(self, run: str, starts: tuple[int, ...]) -> subprocess.Popen:
-        command = [
-            sys.executable, "-m", "services.world", "--world", WORLD_SPEC, "--run", run,
-            "--robots", str(len(starts)), "--starts", ",".join(map(str, starts)),
-            "--connect", self.hub_endpoint,
-        ]  # fmt: skip
-        with open(self.log_path(run), "wb") as log:
-            process = subprocess.Popen(command, cwd=REPO_ROOT, stdout=log, stderr=log)
-        self.processes[run] = process
-        return process
-
-    def log_path(self, run: str) -> Path:
-        return self.log_dir / f"{run}.log"
-
-    def log_of(self, run: str) -> str:
-        return self.log_path(run).read_text(errors="replace")
+    def start(self, run: str, starts: tuple[int, ...]):
+        robots, start_list = str(len(starts)), ",".join(map(str, starts))
+        return self.spawn(
+            run, "services.world", "--world", WORLD_SPEC, "--run", run,
+            "--robots", robots, "--starts", start_list,
+        )  # fmt: skip
 
     def wait_alive(self, session, run: str) -> None:
-        def alive() -> bool:
-            if self.processes[run].poll() is not None:
-                pytest.fail(f"world {run} exited early:\n{self.log_of(run)}")
-            return _token_alive(session, run)
-
-        _until(alive, f"world {run} to announce itself", START_DEADLINE_S)
-
-    def kill_all(self) -> None:
-        for process in self.processes.values():
-            if process.poll() is None:
-                process.kill()
-            process.wait(STOP_DEADLINE_S)
+        self.wait_until_announced(run, lambda: _token_alive(session, run), START_DEADLINE_S)
 
 
 def _token_alive(session, run: str) -> bool:
     return bool(list(session.liveliness().get(alive_world_key(run), timeout=1.0)))
-
-
-@pytest.fixture(scope="module")
-def hub():
-    endpoint = f"tcp/127.0.0.1:{_free_loopback_port()}"
-    session = open_session(zenoh_config(listen=[endpoint], connect=[]))
-    yield session, endpoint
-    session.close()
 
 
 @pytest.fixture(scope="module")
@@ -185,7 +130,7 @@ def test_steps_give_the_scans_of_an_in_process_simulator(hub, worlds):
         _assert_same_scan(_step(session, 0, 0, []), local.scan(0))
         for seq, cells in enumerate(walk, start=1):
             _assert_same_scan(_step(session, 0, seq, cells), local.step(0, cells))
-        _until(lambda: len(poses) == len(scans) == len(walk) + 1, "the published steps")
+        until(lambda: len(poses) == len(scans) == len(walk) + 1, "the published steps")
     finally:
         pose_sub.undeclare()
         scan_sub.undeclare()
@@ -248,8 +193,8 @@ def test_bad_requests_get_an_error_reply_and_the_world_answers_on(hub, worlds):
 def test_a_late_joiner_gets_world_info_and_ground_truth(hub, worlds):
     late = open_session(zenoh_config(connect=[hub[1]]))
     try:
-        info = _until(lambda: _try_get(late, run_key(RUN, "world_info")), "world_info")
-        truth = _until(lambda: _try_get(late, run_key(RUN, "ground_truth")), "ground_truth")
+        info = until(lambda: _try_get(late, run_key(RUN, "world_info")), "world_info")
+        truth = until(lambda: _try_get(late, run_key(RUN, "ground_truth")), "ground_truth")
     finally:
         late.close()
     world = load_world(WORLD_SPEC)

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import threading
-import time
 
 import numpy as np
 import pytest
+from service_processes import free_loopback_port, until
 
 from mapex.config import ServicesConfig
 from services.protocol import (
@@ -112,25 +111,13 @@ def test_unusable_endpoints_fail_to_open_with_one_line(endpoint):
     assert "\n" not in str(info.value) and ".rs:" not in str(info.value)
 
 
-def _free_loopback_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 def _until(condition, what: str):
     """Poll `condition` until it returns a truthy value (declarations propagate async)."""
-    deadline = time.monotonic() + EXCHANGE_DEADLINE_S
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.01)
-    pytest.fail(f"timed out waiting for {what}")
+    return until(condition, what, EXCHANGE_DEADLINE_S)
 
 
 def test_two_loopback_sessions_exchange_a_put_and_a_query():
-    hub_endpoint = f"tcp/127.0.0.1:{_free_loopback_port()}"
+    hub_endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     hub = open_session(zenoh_config(listen=[hub_endpoint], connect=[]))
     try:
         peer = open_session(zenoh_config(connect=[hub_endpoint]))

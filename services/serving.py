@@ -1,0 +1,84 @@
+"""What every service process does alike: answer queries on threads, stop on signals, log.
+
+A service declares one queryable per key, answers its queries in arrival order on a
+thread of its own (inside `with query:` so the querier stops waiting as soon as the
+reply is sent), waits for SIGINT/SIGTERM and then undeclares and drains.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import sys
+import threading
+from collections.abc import Callable
+
+import zenoh
+
+from services.codec import Payload
+from services.messages import ErrorReply, Message
+
+Answer = Callable[[Payload | None], Message]
+STOP_POLL_S = 0.5  # how often the main thread looks up from waiting (signals run meanwhile)
+
+log = logging.getLogger("services.serving")
+
+
+class QueryServers:
+    """One queryable and one answering thread per key, until `close`."""
+
+    def __init__(self, session: zenoh.Session, answers: dict[str, Answer]) -> None:
+        self.queryables = [session.declare_queryable(key) for key in answers]
+        self.threads = [
+            threading.Thread(
+                target=answer_queries, args=(q, key, answer), name=f"serve {key}", daemon=True
+            )
+            for q, (key, answer) in zip(self.queryables, answers.items(), strict=True)
+        ]
+        for thread in self.threads:
+            thread.start()
+
+    def close(self, drain_s: float) -> None:
+        """Undeclare every queryable (ending its thread's loop) and wait up to `drain_s` each."""
+        for queryable in self.queryables:
+            queryable.undeclare()
+        for thread in self.threads:
+            thread.join(drain_s)
+
+
+def answer_queries(queryable: zenoh.Queryable, key: str, answer: Answer) -> None:
+    """Answer queries in arrival order until the queryable is undeclared."""
+    for query in queryable:
+        with query:  # leaving the block finalises the query: the querier stops waiting
+            payload = None if query.payload is None else query.payload.to_bytes()
+            reply = answer(payload)
+            try:
+                if isinstance(reply, ErrorReply):
+                    query.reply_err(reply.encode())
+                else:
+                    query.reply(key, reply.encode())
+            except zenoh.ZError as error:  # e.g. the querier left; the next query is unaffected
+                log.warning("could not send a reply: %s", " ".join(str(error).split()))
+
+
+def stop_on_signals() -> threading.Event:
+    """An event set by SIGINT or SIGTERM (a clean stop instead of a KeyboardInterrupt)."""
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    return stop
+
+
+def wait_for(stop: threading.Event) -> None:
+    """Block until `stop` is set, waking regularly so signal handlers can run."""
+    while not stop.wait(STOP_POLL_S):
+        pass
+
+
+def configure_logging(process_name: str) -> None:
+    """Log lines to stderr carrying the process name (services.up forwards them)."""
+    logging.basicConfig(
+        level=logging.INFO,
+        format=f"%(asctime)s {process_name} %(levelname)s %(message)s",
+        stream=sys.stderr,
+    )

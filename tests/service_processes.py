@@ -1,0 +1,70 @@
+"""Helpers for tests that start real service processes on loopback (no fork, none left behind)."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+STOP_DEADLINE_S = 5.0  # SIGINT to exit (DESIGN.md)
+
+
+def free_loopback_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def until(condition, what: str, deadline_s: float = 5.0):
+    """Poll `condition` until truthy; fail naming `what` after `deadline_s`."""
+    deadline = time.monotonic() + deadline_s
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.02)
+    pytest.fail(f"timed out waiting for {what}")
+
+
+class ServiceProcesses:
+    """`python -m <module>` processes connected to one hub, each logging to a file;
+    `kill_all` leaves none behind."""
+
+    def __init__(self, hub_endpoint: str, log_dir: Path) -> None:
+        self.hub_endpoint = hub_endpoint
+        self.log_dir = log_dir
+        self.processes: dict[str, subprocess.Popen] = {}
+
+    def spawn(self, name: str, module: str, *args: str) -> subprocess.Popen:
+        command = [sys.executable, "-m", module, *args, "--connect", self.hub_endpoint]
+        with open(self.log_path(name), "wb") as log:
+            process = subprocess.Popen(command, cwd=REPO_ROOT, stdout=log, stderr=log)
+        self.processes[name] = process
+        return process
+
+    def log_path(self, name: str) -> Path:
+        return self.log_dir / f"{name}.log"
+
+    def log_of(self, name: str) -> str:
+        return self.log_path(name).read_text(errors="replace")
+
+    def wait_until_announced(self, name: str, announced, deadline_s: float) -> None:
+        """Wait for `announced()`; fail with the log if the process exits first."""
+
+        def alive() -> bool:
+            if self.processes[name].poll() is not None:
+                pytest.fail(f"{name} exited early:\n{self.log_of(name)}")
+            return announced()
+
+        until(alive, f"{name} to announce itself", deadline_s)
+
+    def kill_all(self) -> None:
+        for process in self.processes.values():
+            if process.poll() is None:
+                process.kill()
+            process.wait(STOP_DEADLINE_S)
