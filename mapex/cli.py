@@ -8,7 +8,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from mapex.config import ConfigError, ExplorationConfig, apply_overrides
+from mapex.config import ConfigError, ExplorationConfig, add_override_argument, apply_overrides
 from mapex.methods import METHODS
 from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
 from mapex.prediction.weights import WeightsError
@@ -54,14 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--out", type=Path, default=None, help="results folder; default: results/<run name>"
     )
-    run.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="SECTION.FIELD=VALUE",
-        help="override a configuration field, e.g. visibility.stop_rule=accumulate (repeatable)",
-    )
+    add_override_argument(run)
     run.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return parser
 
@@ -89,7 +82,7 @@ def run_command(args: argparse.Namespace) -> int:
             args.start,
             args.seed,
             config,
-            on_step=lambda t: bar.update(t - bar.n),
+            on_step=lambda t, *_: bar.update(t - bar.n),
         )
     out_dir = args.out or DEFAULT_RESULTS_DIR / run_name(result)
     write_results(result, world, out_dir)

@@ -7,6 +7,7 @@ Any field can be overridden from the command line as `section.field=value`
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import types
 import typing
@@ -121,6 +122,7 @@ class MetricsConfig:
     tu_goals: int = 100
     footprint_margin_cells: int = 3
     prediction_threshold: float = 0.5
+    snapshot_steps: tuple[int, ...] = (200, 500, 1000)  # observed + G maps kept for the report
 
 
 @dataclass(frozen=True)
@@ -230,10 +232,55 @@ class ServicesConfig:
     hub_endpoint: str = "tcp/127.0.0.1:7447"  # well-known loopback endpoint served by services.up
     ephemeral_listen_endpoint: str = "tcp/127.0.0.1:0"  # default listener: loopback, any free port
     predict_timeout_s: float = 10.0  # per-member prediction query; a hung worker costs this once
+    publish_period_s: float = 0.1  # planner -> viewers: at most one batch of maps per period
+    predict_retries: int = 1  # re-sends of a query that no worker was routed (no reply at all)
     liveliness_query_timeout_s: float = 2.0  # planner's start-up discovery of live workers
     predictor_threads: int = 1  # torch CPU threads of one predictor worker (DESIGN.md)
     predictor_drain_s: float = 3.0  # on shutdown, wait this long for the query being computed
     world_drain_s: float = 2.0  # on shutdown, wait this long for the step being answered
+    step_timeout_s: float = 10.0  # one step query; a lost reply is retried with the same seq
+    step_retries: int = 3  # attempts per step before the planner gives up on the world
+    world_wait_s: float = 60.0  # planner start-up: how long to wait for the world's keys
+    workers_wait_s: float = 120.0  # planner start-up: how long to wait for every member
+    supervisor_max_restarts: int = 5  # a crashed server is restarted this often, then left dead
+    stop_grace_s: float = 3.0  # services.up: SIGTERM, wait this long, then SIGKILL what is left
+    hub_probe_timeout_s: float = 1.0  # connect probe of a hub port that a bind probe found taken
+
+
+@dataclass(frozen=True)
+class WatchConfig:
+    """The live viewer `services.watch`: how often it renders, how big, how many GIF frames."""
+
+    every_s: float = 1.0  # render at most this often (only when something new arrived)
+    poll_s: float = 0.1  # how often the loop looks at arrivals (reaction time to "finished")
+    get_timeout_s: float = 2.0  # late-joiner query; topics still unheard are re-asked this often
+    dpi: int = 80
+    panel_inches: float = 4.0  # width of one map panel
+    max_gif_frames: int = 300  # at the cap every other frame is dropped (memory stays bounded)
+    gif_max_side_px: int = 480  # GIF frames are downscaled to fit this square
+    gif_frame_ms: int = 200
+
+
+@dataclass(frozen=True)
+class ReportConfig:
+    """The evaluation report `python -m mapex.report`: figure settings and snapshot steps."""
+
+    snapshot_steps: tuple[int, ...] = (200, 500, 1000)  # columns of snapshots.png
+    dpi: int = 120
+    curve_panel_inches: float = 4.0  # width (and height) of one metric panel of curves.png
+    snapshot_panel_inches: float = 2.2  # width of one map panel of snapshots.png
+    # maps wider than this (cols / rows) get one snapshots.png row per (method, map kind)
+    snapshot_wide_aspect: float = 2.0
+    snapshot_wide_panel_inches: float = 6.0  # width of one map panel in that wide layout
+    snapshot_wide_row_gap_inches: float = 0.2  # space between the rows of that wide layout
+    band_alpha: float = 0.2  # opacity of the standard-error bands
+
+    @property
+    def method_order(self) -> tuple[str, ...]:
+        """Rows of every table and figure: the main comparison, then the ablations."""
+        from mapex.methods import ABLATIONS, MAIN_COMPARISON  # mapex.methods imports config
+
+        return MAIN_COMPARISON + ABLATIONS
 
 
 @dataclass(frozen=True)
@@ -296,3 +343,15 @@ def _coerce(raw: str, hint: Any, item: str) -> Any:
         return hint(raw)
     except (TypeError, ValueError):
         raise ConfigError(f"override '{item}': '{raw}' is not a valid {hint.__name__}") from None
+
+
+def add_override_argument(parser: argparse.ArgumentParser) -> None:
+    """--set SECTION.FIELD=VALUE (repeatable) into `args.overrides` (see `apply_overrides`)."""
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help="override a configuration field, e.g. visibility.stop_rule=accumulate (repeatable)",
+    )

@@ -3,6 +3,8 @@
 The loop is the same lockstep the distributed services run: the simulator
 answers each step with a scan, the explorer integrates it and chooses the next
 motion. Deterministic for a given world, start, method, predictor and seed.
+`services.planner` runs this very loop with a `StepSource` that asks the world
+process over Zenoh and a predictor whose members are worker processes.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -19,8 +22,21 @@ from mapex.grid import Cell
 from mapex.methods import make_method
 from mapex.prediction.base import Predictor
 from mapex.recorder import MetricCurves, MetricRecorder
+from mapex.sensor import Scan
 from mapex.simulator import Simulator
 from mapex.worlds import World, start_poses
+
+
+class StepSource(Protocol):
+    """Who moves the robot and scans: the in-process `Simulator` or a world process."""
+
+    def scan(self, robot: int) -> Scan: ...
+
+    def step(self, robot: int, cells: np.ndarray) -> Scan: ...
+
+
+StepListener = Callable[[int, Explorer, MetricRecorder], None]
+"""Called after each step t (1..T) with the explorer and recorder (progress bars, publishing)."""
 
 
 @dataclass
@@ -42,6 +58,8 @@ class EpisodeResult:
     final_prediction: np.ndarray | None  # G's whole-map prediction at the end
     wall_time_s: float = 0.0
     config: ExplorationConfig = field(default_factory=ExplorationConfig)
+    degraded_samples: list[int] = field(default_factory=list)  # metric samples without G
+    snapshots: dict[int, tuple[np.ndarray, np.ndarray | None]] = field(default_factory=dict)
 
 
 def run_episode(
@@ -51,20 +69,27 @@ def run_episode(
     start_index: int = 0,
     seed: int = 0,
     config: ExplorationConfig | None = None,
-    on_step: Callable[[int], None] | None = None,
+    on_step: StepListener | None = None,
+    source: StepSource | None = None,
+    robot: int = 0,
 ) -> EpisodeResult:
-    """Explore `world` from start `start_index` (0-3) for `config.steps` steps."""
+    """Explore `world` from start `start_index` (0-3) for `config.steps` steps.
+
+    `source` (default: an in-process `Simulator` with the robot at that start) moves robot
+    `robot` and scans; a world process must have placed that robot at the same start.
+    """
     config = config or ExplorationConfig()
     starts = start_poses(world, config.world.start_clearance_cells)
     if not 0 <= start_index < len(starts):
         raise ValueError(f"start index {start_index} out of range 0..{len(starts) - 1}")
     start = starts[start_index]
     began = time.perf_counter()
-    simulator = Simulator(world, [start], config.sensor, config.motion)
+    if source is None:
+        source, robot = Simulator(world, [start], config.sensor, config.motion), 0
     method = make_method(method_name, config)
     explorer = Explorer(world.shape, method, predictor, config, seed)
     recorder = MetricRecorder(world, start, predictor, config.metrics)
-    explorer.observe(simulator.scan(0))
+    explorer.observe(source.scan(robot))
     trajectory = [explorer.pose.copy()]
     finished_at = None
     for t in range(config.steps + 1):
@@ -77,10 +102,11 @@ def run_episode(
             finished_at = t
             recorder.hold_to_end(t, config.steps, explorer.observed)
             break
-        explorer.observe(simulator.step(0, motion))
+        explorer.observe(source.step(robot, motion))
         trajectory.append(explorer.pose.copy())
         if on_step is not None:
-            on_step(t + 1)
+            on_step(t + 1, explorer, recorder)
+    recorder.flush()
     return EpisodeResult(
         world=world.name,
         method=method_name,
@@ -97,4 +123,6 @@ def run_episode(
         final_prediction=recorder.last_prediction,
         wall_time_s=time.perf_counter() - began,
         config=config,
+        degraded_samples=recorder.degraded_samples,
+        snapshots=recorder.snapshots,
     )

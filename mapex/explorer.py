@@ -5,6 +5,11 @@ the goal is still worth going to (SPEC §3), otherwise it re-plans: predicts the
 map (methods that use prediction), extracts frontiers, lets the method pick a
 goal and plans an A* path to it. It then hands back the cells to drive through
 this step. It knows nothing of processes: `services.planner` wraps it.
+
+A distributed ensemble may answer with fewer members than asked (DESIGN.md,
+Reliability). Such a re-plan is *degraded* and listed in the stats; with fewer than
+two members there is no variance, so the frontiers are scored on the observed map
+(the `observed_map` method) for that re-plan.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from mapex.config import ExplorationConfig
 from mapex.frontiers import extract_frontiers
 from mapex.grid import Cell, new_observed_map
 from mapex.methods.base import Method, PlanningContext
+from mapex.methods.information_gain import ObservedMap
 from mapex.navigation import (
     advance_along_path,
     cost_map,
@@ -36,6 +42,8 @@ class ExplorerStats:
     replans: int = 0
     path_repairs: int = 0
     goals: list[tuple[int, int, int]] = field(default_factory=list)  # (t, row, col)
+    degraded_steps: list[int] = field(default_factory=list)  # re-plans lacking members
+    fallback_steps: list[int] = field(default_factory=list)  # of those, scored on O_t only
 
 
 class Explorer:
@@ -52,6 +60,7 @@ class Explorer:
         if method.uses_prediction and predictor is None:
             raise ValueError(f"method '{method.name}' needs a predictor")
         self.method = method
+        self.fallback = ObservedMap(config)
         self.predictor = predictor
         self.config = config
         self.rng = np.random.default_rng(seed)
@@ -61,6 +70,7 @@ class Explorer:
         self.path: np.ndarray | None = None
         self.prediction: EnsemblePrediction | None = None
         self.frontiers = np.zeros((0, 2), dtype=np.int64)
+        self.frontier_scores: np.ndarray | None = None  # the method's, when it scores frontiers
         self.steps_since_plan = 0
         self.moved_since_goal = False
         self.stats = ExplorerStats()
@@ -111,6 +121,7 @@ class Explorer:
     def _replan(self, t: int) -> None:
         self.stats.replans += 1
         self.prediction = self.predict() if self.method.uses_prediction else None
+        method = self._method_for(t, self.prediction)
         self.frontiers = extract_frontiers(self.observed, self.config.frontier)
         cost = cost_map(self.observed, self.config.navigation)
         context = PlanningContext(
@@ -123,7 +134,8 @@ class Explorer:
             config=self.config,
             rng=self.rng,
         )
-        goal = self.method.select_goal(context)
+        goal = method.select_goal(context)
+        self.frontier_scores = method.last_scores
         if goal is None:
             return
         path = plan_path(self.observed, cost, self._cell(self.pose), self._cell(goal))
@@ -133,6 +145,16 @@ class Explorer:
         self.steps_since_plan = 0
         self.moved_since_goal = False
         self.stats.goals.append((t, int(goal[0]), int(goal[1])))
+
+    def _method_for(self, t: int, prediction: EnsemblePrediction | None) -> Method:
+        """The method, or the observed-map fallback when too few members answered."""
+        if prediction is None or len(prediction.answered) == self.predictor.n_members:
+            return self.method
+        self.stats.degraded_steps.append(t)
+        if prediction.has_variance:
+            return self.method
+        self.stats.fallback_steps.append(t)
+        return self.fallback
 
     def predict(self) -> EnsemblePrediction:
         """The ensemble on the region that matters: known area plus sensor range."""

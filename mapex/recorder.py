@@ -2,17 +2,20 @@
 
 IoU and TU judge the map the robot would hand over: P_t = known cells of O_t,
 unknown cells from the main predictor G thresholded at 0.5 (with no predictor,
-unknown counts as free).
+unknown counts as free). When a distributed pool cannot deliver G for a sample,
+unknown counts as free for that sample and the step is listed in `degraded_samples`.
+At `MetricsConfig.snapshot_steps` the recorder keeps O_t and G's map for the report.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from mapex.config import MetricsConfig
-from mapex.grid import Cell
+from mapex.grid import UNKNOWN, Cell, observed_to_probability
 from mapex.metrics import (
     building_footprint,
     coverage,
@@ -21,7 +24,7 @@ from mapex.metrics import (
     topological_understanding,
     tu_goals,
 )
-from mapex.prediction.base import Predictor
+from mapex.prediction.base import EnsemblePrediction, Predictor
 from mapex.worlds.base import World
 
 
@@ -60,26 +63,62 @@ class MetricRecorder:
         )
         self.curves = MetricCurves()
         self.last_prediction: np.ndarray | None = None
+        self.degraded_samples: list[int] = []
+        self.snapshots: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}  # t -> (O_t, G)
+        self._pending: tuple[int, np.ndarray, Callable[[], EnsemblePrediction] | None] | None = None
 
     def is_sample_step(self, t: int) -> bool:
         return t % self.config.sample_every_steps == 0
 
     def record(self, t: int, observed: np.ndarray) -> None:
-        """Sample every metric due at step `t` for the observed map O_t."""
-        self._append(t, *self._measure(observed, with_tu=t % self.config.tu_every_steps == 0))
+        """Sample every metric due at step `t` for the observed map O_t.
+
+        G's whole-map prediction for the sample is asked for now and used when the sample
+        is completed, by the next `record` or by `flush`: a remote ensemble computes it
+        while exploration goes on (the numbers are the same either way).
+        """
+        self.flush()
+        observed = observed.copy()
+        later = None
+        if self.predictor is not None:
+            later = self.predictor.predict_later(observed, members=(0,))
+        self._pending = (t, observed, later)
+
+    def flush(self) -> None:
+        """Complete the sample `record` started, if any."""
+        if self._pending is None:
+            return
+        t, observed, later = self._pending
+        self._pending = None
+        main = self._main_map(t, observed, None if later is None else later())
+        self._append(t, *self._measure(observed, main, t % self.config.tu_every_steps == 0))
+        self._keep_snapshot(t, observed)
 
     def hold_to_end(self, t_end: int, steps: int, observed: np.ndarray) -> None:
         """Early termination at `t_end`: the map no longer changes, so every later sample
         (to `steps`) holds the end state's values."""
+        self.flush()
         later = [t for t in range(t_end + 1, steps + 1) if self.is_sample_step(t)]
         if not later:
             return
-        cov, iou, tu = self._measure(observed, with_tu=True)
+        prediction = None
+        if self.predictor is not None:
+            prediction = self.predictor.predict(observed, members=(0,))
+        main = self._main_map(t_end, observed, prediction)
+        cov, iou, tu = self._measure(observed, main, with_tu=True)
         for t in later:
             self._append(t, cov, iou, tu if t % self.config.tu_every_steps == 0 else float("nan"))
+            self._keep_snapshot(t, observed)
 
-    def _measure(self, observed: np.ndarray, with_tu: bool) -> tuple[float, float, float]:
-        occupied = self.predicted_map(observed)
+    def _keep_snapshot(self, t: int, observed: np.ndarray) -> None:
+        if t in self.config.snapshot_steps:
+            main = None if self.predictor is None else self.last_prediction
+            self.snapshots[t] = (observed.copy(), main)
+
+    def _measure(
+        self, observed: np.ndarray, main: np.ndarray, with_tu: bool
+    ) -> tuple[float, float, float]:
+        occupied = predicted_occupancy(observed, main, self.config.prediction_threshold)
         cov = coverage(observed, self.world.valid_space)
         iou = occupied_iou(occupied, self.world.occupancy, self.footprint)
         tu = float("nan")
@@ -93,11 +132,17 @@ class MetricRecorder:
         self.curves.iou.append(iou)
         self.curves.tu.append(tu)
 
-    def predicted_map(self, observed: np.ndarray) -> np.ndarray:
-        """bool P_t thresholded: known cells from O_t, unknown ones from G's full-map prediction."""
-        if self.predictor is None:
-            main = np.zeros(observed.shape, dtype=np.float32)
+    def _main_map(
+        self, t: int, observed: np.ndarray, prediction: EnsemblePrediction | None
+    ) -> np.ndarray:
+        """G's whole-map prediction (known cells copied through), or, without a predictor
+        or when G did not answer, the observed map with unknown cells counted as free."""
+        if prediction is not None and prediction.answered == (0,):
+            main = prediction.main
         else:
-            main = self.predictor.predict_main(observed)
+            if prediction is not None:
+                self.degraded_samples.append(t)
+            main = np.where(observed == UNKNOWN, 0, observed_to_probability(observed))
+            main = main.astype(np.float32)
         self.last_prediction = main
-        return predicted_occupancy(observed, main, self.config.prediction_threshold)
+        return main

@@ -1,4 +1,8 @@
-"""The results folder of a run: metrics JSON, curves CSV, trajectory CSV and a PNG.
+"""The results folder of a run: metrics JSON, curves CSV, trajectory CSV, snapshots and a PNG.
+
+snapshots.npz holds, at the steps of `MetricsConfig.snapshot_steps` the run reached,
+`steps` int64 (n,), `observed` uint8 (n, rows, cols) codes of O_t and, when a predictor
+judged the map, `prediction` uint8 (n, rows, cols): G's whole-map map, q / 255.
 
 A folder is written under a temporary name and renamed into place, so a reader
 (or a resumed batch evaluation) never sees half a run.
@@ -14,7 +18,10 @@ import shutil
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 from mapex.episode import EpisodeResult
+from mapex.grid import quantise_probability
 from mapex.plotting import plot_episode
 from mapex.worlds.base import World
 
@@ -22,6 +29,7 @@ METRICS_FILE = "metrics.json"
 CURVES_FILE = "curves.csv"
 TRAJECTORY_FILE = "trajectory.csv"
 PICTURE_FILE = "final.png"
+SNAPSHOTS_FILE = "snapshots.npz"
 
 
 def run_name(result: EpisodeResult) -> str:
@@ -50,6 +58,9 @@ def summary(result: EpisodeResult) -> dict:
         },
         "replans": result.stats.replans,
         "path_repairs": result.stats.path_repairs,
+        "degraded_steps": result.stats.degraded_steps,
+        "fallback_steps": result.stats.fallback_steps,
+        "degraded_metric_samples": result.degraded_samples,
         "wall_time_s": round(result.wall_time_s, 3),
         "config": dataclasses.asdict(result.config),
     }
@@ -63,6 +74,7 @@ def write_results(result: EpisodeResult, world: World, out_dir: Path) -> Path:
     (staging / METRICS_FILE).write_text(json.dumps(summary(result), indent=2) + "\n")
     _write_curves(result, staging / CURVES_FILE)
     _write_trajectory(result, staging / TRAJECTORY_FILE)
+    _write_snapshots(result, staging / SNAPSHOTS_FILE)
     plot_episode(
         staging / PICTURE_FILE,
         f"{result.world} | {result.method} | start {result.start_index} | seed {result.seed}",
@@ -91,6 +103,19 @@ def _write_trajectory(result: EpisodeResult, path: Path) -> None:
         writer = csv.writer(handle)
         writer.writerow(["step", "row", "col"])
         writer.writerows([t, int(r), int(c)] for t, (r, c) in enumerate(result.trajectory))
+
+
+def _write_snapshots(result: EpisodeResult, path: Path) -> None:
+    steps = sorted(result.snapshots)
+    arrays = {
+        "steps": np.asarray(steps, dtype=np.int64),
+        "observed": np.asarray([result.snapshots[t][0] for t in steps], dtype=np.uint8),
+    }
+    if steps and all(result.snapshots[t][1] is not None for t in steps):
+        arrays["prediction"] = np.asarray(
+            [quantise_probability(result.snapshots[t][1]) for t in steps], dtype=np.uint8
+        )
+    np.savez_compressed(path, **arrays)
 
 
 def _json_float(value: float) -> float | None:

@@ -21,6 +21,11 @@ import msgpack
 import numpy as np
 
 from mapex.config import ServicesConfig
+from mapex.grid import (  # noqa: F401  (re-exported: the wire quantisation)
+    QUANTISATION_LEVELS,
+    dequantise_probability,
+    quantise_probability,
+)
 
 SCHEMA_VERSION = 1
 ARRAY_DTYPES = frozenset(
@@ -29,32 +34,12 @@ ARRAY_DTYPES = frozenset(
 ARRAY_KEYS = frozenset({"dtype", "shape", "zlib", "data"})
 ENVELOPE_KEYS = ("schema", "type")
 DEFAULT_SERVICES = ServicesConfig()
-QUANTISATION_LEVELS = 255  # uint8 probability q stands for q / 255
 
 Payload = bytes | bytearray | memoryview
 
 
 class ProtocolError(ValueError):
     """A payload or key that breaks the wire protocol; the message is one line."""
-
-
-def quantise_probability(probability: np.ndarray) -> np.ndarray:
-    """Probabilities in [0, 1] (any float array) -> uint8 round(p * 255).
-
-    `dequantise_probability` brings them back within 1/510 (half a level). Values outside
-    [0, 1] or not finite raise ValueError: they are a bug upstream, not noise to clip.
-    """
-    values = np.asarray(probability, dtype=np.float32)
-    if values.size and not (np.isfinite(values).all() and values.min() >= 0 and values.max() <= 1):
-        raise ValueError("probabilities to quantise must be finite and within [0, 1]")
-    return np.rint(values * np.float32(QUANTISATION_LEVELS)).astype(np.uint8)
-
-
-def dequantise_probability(quantised: np.ndarray) -> np.ndarray:
-    """uint8 levels of `quantise_probability` -> float32 probabilities q / 255."""
-    if quantised.dtype != np.uint8:
-        raise ValueError(f"quantised probabilities must be uint8, got {quantised.dtype}")
-    return quantised.astype(np.float32) / np.float32(QUANTISATION_LEVELS)
 
 
 def encode_array(array: np.ndarray, config: ServicesConfig = DEFAULT_SERVICES) -> dict[str, Any]:

@@ -15,7 +15,7 @@ import itertools
 import logging
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,6 +55,17 @@ class MemberAnswers:
     def complete(self) -> bool:
         """Whether every requested member answered."""
         return not self.missing
+
+
+@dataclass
+class _Inflight:
+    """One prediction whose queries are out: what `_finish` needs to collect them."""
+
+    request_id: int  # -1: nothing was sent (empty crop)
+    payload: bytes
+    shape: tuple[int, ...]
+    members: tuple[int, ...]
+    pending: list[_Pending]
 
 
 @dataclass
@@ -161,22 +172,75 @@ class ZenohEnsemble(Predictor):
             raise MembersMissingError(f"members {names} did not answer")
         return answers.probabilities
 
+    def predict(
+        self,
+        observed: np.ndarray,
+        region: Region | None = None,
+        members: Sequence[int] | None = None,
+    ) -> EnsemblePrediction:
+        """`Predictor.predict` with only the members that answered (`answered` says which)."""
+        return self.predict_ensemble(observed, region, members)[0]
+
     def predict_available(self, observed: np.ndarray, members: Sequence[int]) -> MemberAnswers:
         """Ask every member in `members` for the crop `observed` in parallel; keep who answers.
 
-        Waits at most `services.predict_timeout_s` (all queries run concurrently).
+        Waits at most `services.predict_timeout_s` (all queries run concurrently). A query
+        that ends with no reply at all (no queryable was routed: a worker just left, a link
+        was being re-established) is sent again, up to `services.predict_retries` times; a
+        timed-out or refused one is not (a hung worker costs one timeout, DESIGN.md).
         """
+        return self._finish(self._start(observed, members))
+
+    def predict_later(
+        self,
+        observed: np.ndarray,
+        region: Region | None = None,
+        members: Sequence[int] | None = None,
+    ) -> Callable[[], EnsemblePrediction]:
+        """Send the queries now; the returned function waits for the answers (`predict`'s).
+
+        The workers compute while the caller goes on (e.g. the metrics' whole-map G
+        prediction overlaps the next steps of exploration). `observed` must not change.
+        """
+        members = tuple(range(self.n_members)) if members is None else tuple(members)
+        r0, r1, c0, c1 = region or (0, observed.shape[0], 0, observed.shape[1])
+        inflight = self._start(observed[r0:r1, c0:c1], members)
+
+        def result() -> EnsemblePrediction:
+            answers = self._finish(inflight)
+            return _Answered(answers.probabilities).predict(observed, region, answers.answered)
+
+        return result
+
+    def _start(self, crop: np.ndarray, members: Sequence[int]) -> _Inflight:
+        """Send one query per member (none for an empty crop)."""
         members = tuple(members)
-        if observed.size == 0:  # nothing to predict (PredictRequest needs a non-empty map)
-            empty = np.zeros((len(members), *observed.shape), dtype=np.float32)
+        if crop.size == 0:  # nothing to predict (PredictRequest needs a non-empty map)
+            return _Inflight(-1, b"", crop.shape, members, [])
+        request_id = next(self._request_ids)
+        payload = PredictRequest(request_id, crop).encode(self.services)
+        sent = [p for p in (self._send(k, payload) for k in members) if p is not None]
+        return _Inflight(request_id, payload, crop.shape, members, sent)
+
+    def _finish(self, inflight: _Inflight) -> MemberAnswers:
+        """Collect the replies (re-sending unrouted queries) and assemble the answers."""
+        members, shape = inflight.members, inflight.shape
+        if inflight.request_id < 0:
+            empty = np.zeros((len(members), *shape), dtype=np.float32)
             self.last_answers = MemberAnswers(empty, members, ())
             return self.last_answers
-        request_id = next(self._request_ids)
-        payload = PredictRequest(request_id, observed).encode(self.services)
-        pending = [self._send(k, payload) for k in members]
-        results = {p.member: self._collect(p, request_id, observed.shape) for p in pending if p}
+        results: dict[int, PredictReply | None] = {}
+        pending = inflight.pending
+        for attempt in range(1 + self.services.predict_retries):
+            collected = {p.member: self._collect(p, inflight.request_id, shape) for p in pending}
+            results.update({k: reply for k, (reply, _) in collected.items()})
+            unrouted = [k for k, (_, routed) in collected.items() if not routed]
+            if not unrouted or attempt == self.services.predict_retries:
+                break
+            sent = (self._send(k, inflight.payload) for k in unrouted)
+            pending = [p for p in sent if p is not None]
         answered = tuple(k for k in members if results.get(k) is not None)
-        stacked = np.empty((len(answered), *observed.shape), dtype=np.float32)
+        stacked = np.empty((len(answered), *shape), dtype=np.float32)
         for row, k in enumerate(answered):
             stacked[row] = results[k].probabilities()
         answers = MemberAnswers(
@@ -218,19 +282,19 @@ class ZenohEnsemble(Predictor):
 
     def _collect(
         self, pending: _Pending, request_id: int, shape: tuple[int, ...]
-    ) -> PredictReply | None:
-        """The valid reply of one query, or None (logged) when there is none."""
+    ) -> tuple[PredictReply | None, bool]:
+        """(the valid reply of one query or None (logged), whether any reply came at all)."""
         name, where = MEMBER_NAMES[pending.member], f"worker {pending.worker_id}"
         replies = list(pending.replies)  # ends when the query is finalised or times out
         if not replies:  # no queryable matched (the worker just left) or it sent nothing
             log.warning("member %s: %s sent no reply", name, where)
-            return None
+            return None, False
         for reply in replies:
             message, problem = self._check_reply(reply, request_id, name, shape)
             if problem is None:
-                return message
+                return message, True
             log.warning("member %s: %s gave no prediction: %s", name, where, problem)
-        return None
+        return None, True
 
     def _check_reply(
         self, reply: zenoh.Reply, request_id: int, member: str, shape: tuple[int, ...]

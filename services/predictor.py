@@ -33,7 +33,13 @@ from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
 from services.codec import DEFAULT_SERVICES, Payload, ProtocolError
 from services.keys import ID_MAX_CHARS, MEMBERS, alive_predictor_key, is_valid_id, predict_key
 from services.messages import ErrorReply, PredictReply, PredictRequest
-from services.serving import QueryServers, configure_logging, stop_on_signals, wait_for
+from services.serving import (
+    QueryServers,
+    configure_logging,
+    return_freed_memory,
+    stop_on_signals,
+    wait_for,
+)
 from services.zenoh_config import (
     ZenohConfigError,
     add_zenoh_arguments,
@@ -114,6 +120,8 @@ def main(
     The weights load before the session opens, so a bad file costs no network set-up.
     """
     from mapex.prediction.learned import LearnedEnsemble  # torch only once the flags are valid
+
+    return_freed_memory()
 
     predictor = LearnedEnsemble(Path(weights_dir), device, threads, members=(member,))
     session = open_session(config)

@@ -7,7 +7,9 @@ reply is sent), waits for SIGINT/SIGTERM and then undeclares and drains.
 
 from __future__ import annotations
 
+import ctypes
 import logging
+import os
 import signal
 import sys
 import threading
@@ -19,6 +21,7 @@ from services.codec import Payload
 from services.messages import ErrorReply, Message
 
 Answer = Callable[[Payload | None], Message]
+SUPERVISOR_PID_ENV = "MAPEX_SUPERVISOR_PID"  # set by services.supervisor for its children
 STOP_POLL_S = 0.5  # how often the main thread looks up from waiting (signals run meanwhile)
 
 log = logging.getLogger("services.serving")
@@ -70,9 +73,18 @@ def stop_on_signals() -> threading.Event:
 
 
 def wait_for(stop: threading.Event) -> None:
-    """Block until `stop` is set, waking regularly so signal handlers can run."""
+    """Block until `stop` is set, waking regularly so signal handlers can run; also stop
+    when the supervisor that started this process is gone (killed with SIGKILL)."""
     while not stop.wait(STOP_POLL_S):
-        pass
+        if supervisor_gone():
+            log.warning("the supervisor is gone: stopping")
+            stop.set()
+
+
+def supervisor_gone() -> bool:
+    """Whether a supervisor started this process and has died since (it was orphaned)."""
+    supervisor = os.environ.get(SUPERVISOR_PID_ENV)
+    return supervisor is not None and str(os.getppid()) != supervisor
 
 
 def configure_logging(process_name: str) -> None:
@@ -82,3 +94,25 @@ def configure_logging(process_name: str) -> None:
         format=f"%(asctime)s {process_name} %(levelname)s %(message)s",
         stream=sys.stderr,
     )
+
+
+_M_TRIM_THRESHOLD = -1  # mallopt parameters of glibc's malloc.h
+_M_MMAP_THRESHOLD = -3
+
+
+def return_freed_memory(threshold_bytes: int = 4 * 2**20) -> bool:
+    """Make glibc serve large blocks with mmap and trim the heap eagerly (True if applied).
+
+    Torch frees its large activation tensors after every prediction, but glibc's default
+    adaptive thresholds keep such blocks in the heap, so a worker's resident memory creeps
+    up to twice what one prediction needs. With fixed thresholds freed blocks go back to the
+    system. No-op where libc is not glibc.
+    """
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        return bool(
+            libc.mallopt(_M_MMAP_THRESHOLD, threshold_bytes)
+            and libc.mallopt(_M_TRIM_THRESHOLD, threshold_bytes)
+        )
+    except (OSError, AttributeError):
+        return False

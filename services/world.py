@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import queue
 import sys
 import threading
 from collections.abc import Callable, Sequence
@@ -160,7 +161,8 @@ def serve(
 ) -> int:
     """Serve `server`'s world for `run` on `session` until `stop` is set; return steps served."""
     publishers = _declare_step_publishers(session, server, run)
-    server.on_step = _step_publisher(publishers)
+    step_publisher = _StepPublisher(publishers)
+    server.on_step = step_publisher
     info, truth = server.world_info(), server.ground_truth()
     answers: dict[str, Answer] = {
         run_key(run, "world_info"): lambda _: info,
@@ -180,6 +182,7 @@ def serve(
     finally:
         token.undeclare()
         servers.close(services.world_drain_s)
+        step_publisher.close()
         for publisher in publishers.values():
             publisher.undeclare()
     return server.served
@@ -196,14 +199,32 @@ def _declare_step_publishers(
     }
 
 
-def _step_publisher(publishers: dict[tuple[int, str], zenoh.Publisher]) -> StepListener:
-    """Publish a fresh step's pose (t = seq: the initial scan is t = 0) and its scan."""
+class _StepPublisher:
+    """Publishes each fresh step's pose (t = seq: the initial scan is t = 0) and scan from a
+    thread of its own, so encoding them does not delay the step's reply."""
 
-    def publish(robot: int, seq: int, reply: ScanReply) -> None:
-        publishers[robot, "pose"].put(PoseMessage(seq, reply.pose).encode())
-        publishers[robot, "scan"].put(reply.encode())
+    def __init__(self, publishers: dict[tuple[int, str], zenoh.Publisher]) -> None:
+        self.publishers = publishers
+        self.queue: queue.SimpleQueue = queue.SimpleQueue()
+        self.thread = threading.Thread(target=self._run, name="publish steps", daemon=True)
+        self.thread.start()
 
-    return publish
+    def __call__(self, robot: int, seq: int, reply: ScanReply) -> None:
+        self.queue.put((robot, seq, reply))
+
+    def close(self) -> None:
+        """Publish what is queued, then stop."""
+        self.queue.put(None)
+        self.thread.join()
+
+    def _run(self) -> None:
+        while (item := self.queue.get()) is not None:
+            robot, seq, reply = item
+            try:
+                self.publishers[robot, "pose"].put(PoseMessage(seq, reply.pose).encode())
+                self.publishers[robot, "scan"].put(reply.encode())
+            except zenoh.ZError as error:
+                log.warning("could not publish step %d of robot %d: %s", seq, robot, error)
 
 
 def _step_answerer(server: WorldServer, robot: int) -> Answer:

@@ -43,7 +43,20 @@ class ZenohConfigError(ValueError):
     """Zenoh flags, a config file or endpoints that Zenoh rejects; the message is one line."""
 
 
-def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
+SERVICE_HELP = {
+    "connect": "endpoint to connect to, repeatable (default: the loopback hub tcp/127.0.0.1:7447)",
+    "listen": "endpoint to listen on, repeatable (default: tcp/127.0.0.1:0, any loopback port)",
+}
+HUB_HELP = {  # services.up and services.evaluate serve the hub unless told to join one
+    "connect": "join the hub/router there (and its workers) instead of serving "
+    "tcp/127.0.0.1:7447; every child connects there too",
+    "listen": "serve the hub on this endpoint instead (the children connect to it)",
+}
+
+
+def add_zenoh_arguments(
+    parser: argparse.ArgumentParser, help_text: dict[str, str] = SERVICE_HELP
+) -> None:
     """Add --mode, --connect, --listen and --config (as in the zenoh-python examples)."""
     group = parser.add_argument_group("zenoh")
     group.add_argument(
@@ -54,14 +67,14 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="ENDPOINT",
         action="append",
         default=None,
-        help="endpoint to connect to, repeatable (default: the loopback hub tcp/127.0.0.1:7447)",
+        help=help_text["connect"],
     )
     group.add_argument(
         "--listen",
         metavar="ENDPOINT",
         action="append",
         default=None,
-        help="endpoint to listen on, repeatable (default: tcp/127.0.0.1:0, any loopback port)",
+        help=help_text["listen"],
     )
     group.add_argument(
         "--config", metavar="FILE", default=None, help="Zenoh json5 config file (base config)"

@@ -1,11 +1,13 @@
 """The goal-keeping and re-planning rule of SPEC §3, on hand-made maps."""
 
 import numpy as np
+import pytest
 
 from mapex.config import ExplorationConfig
 from mapex.explorer import Explorer
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
 from mapex.methods import make_method
+from mapex.prediction.base import Predictor
 
 
 def explorer_in_corridor() -> Explorer:
@@ -62,3 +64,36 @@ def test_unknown_everywhere_but_the_robot_cell_gives_no_motion():
     explorer.pose = np.array([5, 5])
     assert (explorer.observed == UNKNOWN).sum() == 99
     assert explorer.next_motion(0) is None  # a single free cell is no frontier cluster
+
+
+class _PartialPool(Predictor):
+    """A pool where only `answering` members answer (the others' workers are gone)."""
+
+    n_members = 4
+
+    def __init__(self, answering: tuple[int, ...]) -> None:
+        self.answering = answering
+
+    def predict_members(self, observed, members):
+        return np.full((len(members), *observed.shape), 0.3, dtype=np.float32)
+
+    def predict(self, observed, region=None, members=None):
+        asked = tuple(range(self.n_members)) if members is None else tuple(members)
+        return super().predict(observed, region, [k for k in asked if k in self.answering])
+
+
+@pytest.mark.parametrize(
+    ("answering", "degraded", "fallback"),
+    [((0, 1, 2, 3), False, False), ((0, 2, 3), True, False), ((1,), True, True), ((), True, True)],
+)
+def test_missing_members_are_recorded_and_too_few_fall_back_to_observed_map_scoring(
+    answering, degraded, fallback
+):
+    config = ExplorationConfig()
+    explorer = explorer_in_corridor()
+    explorer.method = make_method("mapex", config)
+    explorer.predictor = _PartialPool(answering)
+    assert explorer.next_motion(7) is not None and explorer.goal[1] == 60
+    assert explorer.stats.degraded_steps == ([7] if degraded else [])
+    assert explorer.stats.fallback_steps == ([7] if fallback else [])
+    assert explorer.frontier_scores is not None and len(explorer.frontier_scores) == 1

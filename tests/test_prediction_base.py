@@ -5,8 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mapex.grid import FREE, OCCUPIED, UNKNOWN, observed_to_probability
+from mapex.grid import (
+    FREE,
+    OCCUPIED,
+    UNKNOWN,
+    dequantise_probability,
+    observed_to_probability,
+    quantise_probability,
+)
 from mapex.prediction.base import EnsemblePrediction, Predictor, known_region
+
+HALF_LEVEL = 1 / 510  # quantisation error bound of a member output
 
 
 class _ConstantMembers(Predictor):
@@ -65,9 +74,28 @@ def test_predict_whole_map_copies_known_cells_and_fills_unknown_ones() -> None:
     for i in range(3):
         member = prediction.members[i]
         np.testing.assert_array_equal(member[known], observed[known] / 2)
-        np.testing.assert_allclose(member[~known], (i + 1) / 10)
+        np.testing.assert_allclose(member[~known], (i + 1) / 10, atol=HALF_LEVEL)
     np.testing.assert_array_equal(prediction.variance[known], 0.0)
-    np.testing.assert_allclose(prediction.variance[~known], 0.01, rtol=1e-5)
+    np.testing.assert_allclose(prediction.variance[~known], 0.01, atol=1e-3)
+    assert prediction.answered == (0, 1, 2)
+
+
+def test_member_outputs_are_quantised_to_the_wire_levels() -> None:
+    observed = _random_observed((6, 7), seed=5)
+    prediction = _ConstantMembers(n_members=2).predict(observed)
+    unknown = observed == UNKNOWN
+    levels = prediction.members[:, unknown] * 255
+    np.testing.assert_allclose(levels, np.rint(levels), atol=1e-4)
+    np.testing.assert_array_equal(
+        dequantise_probability(quantise_probability(prediction.members)), prediction.members
+    )
+
+
+def test_answered_names_the_requested_members_in_order() -> None:
+    observed = _random_observed((4, 4), seed=6)
+    prediction = _ConstantMembers(n_members=4).predict(observed, members=(2, 0))
+    assert prediction.answered == (2, 0) and prediction.has_variance
+    assert not EnsemblePrediction(prediction.members[:1]).has_variance
 
 
 def test_predict_region_only_touches_the_region() -> None:
@@ -83,7 +111,7 @@ def test_predict_region_only_touches_the_region() -> None:
         np.testing.assert_array_equal(member[~inside], expected_outside)  # unknown stays 0.5
     np.testing.assert_array_equal(prediction.variance[~inside], 0.0)
     unknown_inside = inside & (observed == UNKNOWN)
-    np.testing.assert_allclose(prediction.members[1][unknown_inside], 0.2)
+    np.testing.assert_allclose(prediction.members[1][unknown_inside], 0.2, atol=HALF_LEVEL)
 
 
 def test_predict_main_is_member_zero_of_the_whole_map() -> None:

@@ -76,6 +76,7 @@ class Method(ABC):
 
     def __init__(self, config: ExplorationConfig) -> None:
         self.config = config
+        self.last_scores: np.ndarray | None = None  # per frontier of the last choice, if scored
 
     @abstractmethod
     def select_goal(self, context: PlanningContext) -> np.ndarray | None:
@@ -90,9 +91,11 @@ class FrontierScorer(Method):
         """float64 (K,) score per frontier, higher is better."""
 
     def select_goal(self, context: PlanningContext) -> np.ndarray | None:
+        self.last_scores = None
         if len(context.frontiers) == 0:
             return None
         scores = self.score(context)
+        self.last_scores = scores
         for index in np.argsort(-scores, kind="stable"):
             if np.isfinite(scores[index]) and context.can_reach(context.frontiers[index]):
                 return context.frontiers[index]

@@ -3,19 +3,25 @@
 A predictor maps an observed map O_t (uint8 codes of `mapex.grid`) to one
 occupancy-probability map per ensemble member. Member 0 is the main model G,
 members 1.. are G_1..G_n. Known cells are always copied through from O_t, so
-only unknown cells carry a prediction.
+only unknown cells carry a prediction. Member outputs are quantised to the uint8
+levels of `mapex.grid.quantise_probability`, the precision they have on the wire.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
 
-from mapex.grid import UNKNOWN, observed_to_probability
+from mapex.grid import (
+    UNKNOWN,
+    dequantise_probability,
+    observed_to_probability,
+    quantise_probability,
+)
 
 Region = tuple[int, int, int, int]  # row_start, row_stop, col_start, col_stop (slice bounds)
 MEMBER_NAMES = ("g", "g1", "g2", "g3")  # ensemble members by index; member 0 is the main model G
@@ -26,11 +32,25 @@ class EnsemblePrediction:
     """Member predictions, float32 (n_members, rows, cols); member 0 is G.
 
     Only `region` was predicted: outside it every member holds the observed map,
-    so the mean is that map and the variance is zero there.
+    so the mean is that map and the variance is zero there. `member_ids` names the
+    member of each row (None: rows 0..n-1 are members 0..n-1). A distributed pool
+    may answer with fewer members than asked (DESIGN.md, Reliability); then
+    `member_ids` says which, and row 0 is G only if G answered.
     """
 
     members: np.ndarray
     region: Region | None = None
+    member_ids: tuple[int, ...] | None = None
+
+    @property
+    def answered(self) -> tuple[int, ...]:
+        """The member index of each row."""
+        return self.member_ids if self.member_ids is not None else tuple(range(len(self.members)))
+
+    @property
+    def has_variance(self) -> bool:
+        """Whether enough members answered for a variance (at least two)."""
+        return len(self.members) >= 2
 
     @property
     def main(self) -> np.ndarray:
@@ -92,9 +112,21 @@ class Predictor(ABC):
         raw = self.predict_members(crop, members)
         if raw.shape != (len(members), *crop.shape):
             raise ValueError(f"{self.name}: members returned {raw.shape}, expected {crop.shape}")
+        raw = dequantise_probability(quantise_probability(raw))
         unknown = crop == UNKNOWN
         stacked[:, r0:r1, c0:c1] = np.where(unknown[None], raw, known_prob[None, r0:r1, c0:c1])
-        return EnsemblePrediction(stacked, region)
+        return EnsemblePrediction(stacked, region, members)
+
+    def predict_later(
+        self,
+        observed: np.ndarray,
+        region: Region | None = None,
+        members: Sequence[int] | None = None,
+    ) -> Callable[[], EnsemblePrediction]:
+        """`predict`, as a function to call for the result. In one process it is computed
+        now; a remote ensemble starts the work and lets the caller go on meanwhile."""
+        prediction = self.predict(observed, region, members)
+        return lambda: prediction
 
     def predict_main(self, observed: np.ndarray) -> np.ndarray:
         """G's whole-map prediction with known cells copied through (what the metrics judge)."""

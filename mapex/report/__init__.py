@@ -1,0 +1,256 @@
+"""`python -m mapex.report RESULTS_DIR`: the evaluation report of a folder of finished runs.
+
+Reads the run folders written by mapex.results (hidden `.name` folders are runs still
+being written and are ignored) and produces, in `--out` (default RESULTS_DIR/report):
+
+* report.md / report.json: per method the mean +- standard error over runs of the
+  coverage, IoU and TU AUCs (SPEC §6), pooled and per world; MapEx's relative
+  improvement over every other method in the paper's form (AUC_ref - AUC_other) /
+  AUC_other x 100 % (SPEC §7); the number of runs per world and method.
+* curves.png and curves-<world>.png: mean metric curves with standard-error bands.
+* snapshots.png: observed map and G's prediction at the snapshot steps for one run per
+  method, all on the same world and start (one row per method; one row per method and map
+  kind for wide maps).
+
+The mean of the per-run AUCs is SPEC §6's aggregate (the AUC of the mean curve) when the
+runs share one sample grid, i.e. one time budget T; mixed budgets are flagged in the report.
+
+Modules: runs (loading run folders), tables (numbers, Markdown and JSON), figures (curves
+and snapshots); this one assembles the report and holds the command line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from mapex.config import ReportConfig
+from mapex.report.figures import (
+    MeanCurve,
+    choose_snapshot_runs,
+    mean_curve,
+    plot_curves,
+    plot_snapshots,
+    snapshot_columns,
+    world_file_name,
+)
+from mapex.report.runs import (
+    METRIC_LABELS,
+    METRICS,
+    ReportError,
+    RunRecord,
+    Snapshots,
+    Warn,
+    load_run,
+    load_runs,
+    load_snapshots,
+    load_snapshots_or_warn,
+    warn_stderr,
+)
+from mapex.report.tables import (
+    REFERENCE_METHOD,
+    MethodRow,
+    Stat,
+    Table,
+    auc_markdown,
+    auc_table,
+    budget_warning,
+    counts_markdown,
+    improvements_markdown,
+    mean_se,
+    method_rows,
+    order_methods,
+    relative_improvement,
+    relative_improvements,
+    render_markdown,
+    report_json,
+    run_counts,
+)
+
+__all__ = [
+    "CURVES_FIGURE",
+    "JSON_FILE",
+    "MARKDOWN_FILE",
+    "METRICS",
+    "METRIC_LABELS",
+    "REFERENCE_METHOD",
+    "REPORT_DIR_NAME",
+    "SNAPSHOTS_FIGURE",
+    "MeanCurve",
+    "MethodRow",
+    "ReportError",
+    "ReportFiles",
+    "RunRecord",
+    "Snapshots",
+    "Stat",
+    "Table",
+    "Warn",
+    "auc_markdown",
+    "auc_table",
+    "budget_warning",
+    "build_parser",
+    "choose_snapshot_runs",
+    "counts_markdown",
+    "improvements_markdown",
+    "load_run",
+    "load_runs",
+    "load_snapshots",
+    "main",
+    "mean_curve",
+    "mean_se",
+    "method_rows",
+    "order_methods",
+    "plot_curves",
+    "plot_snapshots",
+    "relative_improvement",
+    "relative_improvements",
+    "render_markdown",
+    "report_command",
+    "report_json",
+    "run_counts",
+    "snapshot_columns",
+    "warn_stderr",
+    "world_file_name",
+    "write_report",
+]
+
+REPORT_DIR_NAME = "report"
+MARKDOWN_FILE = "report.md"
+JSON_FILE = "report.json"
+CURVES_FIGURE = "curves.png"
+SNAPSHOTS_FIGURE = "snapshots.png"
+
+
+@dataclass(frozen=True)
+class ReportFiles:
+    markdown: Path
+    json: Path
+    figures: tuple[Path, ...]
+
+
+def write_report(
+    runs: Sequence[RunRecord],
+    out_dir: Path,
+    config: ReportConfig | None = None,
+    snapshot_pick: RunRecord | None = None,
+    warn: Warn = warn_stderr,
+) -> tuple[ReportFiles, str]:
+    """Write report.md, report.json and the figures of `runs` to `out_dir`; return the files
+    and the Markdown summary (AUC and improvement tables) for the terminal."""
+    if not runs:
+        raise ReportError("no runs to report")
+    config = ReportConfig() if config is None else config
+    order = config.method_order
+    table = auc_table(runs, order)
+    improvements = relative_improvements(table, REFERENCE_METHOD)
+    counts = run_counts(runs, order)
+    notes = [n for n in (budget_warning(runs),) if n]
+    for note in notes:
+        warn(note)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    markdown = out_dir / MARKDOWN_FILE
+    markdown.write_text(render_markdown(table, improvements, counts, REFERENCE_METHOD, notes))
+    data = report_json(table, improvements, counts, REFERENCE_METHOD, notes)
+    figures = _write_curves(runs, table, out_dir, config)
+    snapshots = _write_snapshots(runs, out_dir, config, snapshot_pick, warn)
+    if snapshots is not None:
+        figures.append(out_dir / SNAPSHOTS_FIGURE)
+        data.update(snapshots)
+    path_json = out_dir / JSON_FILE
+    path_json.write_text(json.dumps(data, indent=2) + "\n")
+    summary = auc_markdown(table.rows)
+    if improvements:
+        summary += "\n\n" + improvements_markdown(improvements, REFERENCE_METHOD)
+    return ReportFiles(markdown, path_json, tuple(figures)), summary
+
+
+def _write_curves(
+    runs: Sequence[RunRecord], table: Table, out_dir: Path, config: ReportConfig
+) -> list[Path]:
+    """curves.png over all worlds, then curves-<world>.png per world; returns their paths."""
+    order = config.method_order
+    figures = [out_dir / CURVES_FIGURE]
+    plot_curves(figures[0], runs, f"all worlds ({len(runs)} runs)", order, config)
+    for world in table.by_world:
+        mine = [r for r in runs if r.world == world]
+        figures.append(out_dir / world_file_name(world))
+        plot_curves(figures[-1], mine, f"{world} ({len(mine)} runs)", order, config)
+    return figures
+
+
+def _write_snapshots(
+    runs: Sequence[RunRecord],
+    out_dir: Path,
+    config: ReportConfig,
+    pick: RunRecord | None,
+    warn: Warn,
+) -> dict | None:
+    """snapshots.png; returns its report.json entries, or None (with a warning) when no run
+    has snapshots."""
+    chosen = choose_snapshot_runs(runs, config.method_order, pick, warn)
+    if not chosen:
+        warn("no run has snapshots.npz: snapshots.png not written")
+        return None
+    pairs = [(r, load_snapshots_or_warn(r, warn)) for r in chosen]
+    steps = plot_snapshots(out_dir / SNAPSHOTS_FIGURE, pairs, config)
+    return {"snapshot_steps": list(steps), "snapshot_runs": [r.name for r in chosen]}
+
+
+# ---------------------------------------------------------------- command line
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m mapex.report",
+        description="Summarise a folder of finished runs (one sub-folder per run, as written by "
+        "`python -m mapex run`): AUC table (mean ± standard error per method), MapEx's relative "
+        "improvements, run counts, metric curves and map snapshots. Folders whose name starts "
+        "with '.' are runs still being written and are ignored.",
+    )
+    parser.add_argument("results_dir", type=Path, metavar="RESULTS_DIR", help="folder of runs")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help=f"output folder; default: RESULTS_DIR/{REPORT_DIR_NAME}",
+    )
+    parser.add_argument(
+        "--snapshot-run",
+        default=None,
+        metavar="NAME",
+        help="run folder name whose world and start snapshots.png shows for every method; "
+        "default: the first world/start that every method has",
+    )
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        files, summary = report_command(args)
+    except (ReportError, OSError) as error:
+        print(f"mapex.report: error: {error}", file=sys.stderr)
+        return 2
+    print(summary)
+    print(f"\nwrote {files.markdown}, {files.json} and {len(files.figures)} figures")
+    return 0
+
+
+def report_command(args: argparse.Namespace) -> tuple[ReportFiles, str]:
+    results_dir: Path = args.results_dir
+    if not results_dir.is_dir():
+        raise ReportError(f"results directory {results_dir} does not exist")
+    out_dir = results_dir / REPORT_DIR_NAME if args.out is None else args.out
+    runs = load_runs(results_dir, exclude=(out_dir, results_dir / REPORT_DIR_NAME))
+    if not runs:
+        raise ReportError(f"no finished runs in {results_dir}")
+    pick = None
+    if args.snapshot_run is not None:
+        pick = next((r for r in runs if r.name == args.snapshot_run), None)
+        if pick is None:
+            raise ReportError(f"--snapshot-run: no finished run named '{args.snapshot_run}'")
+    return write_report(runs, out_dir, snapshot_pick=pick)

@@ -1,0 +1,173 @@
+"""Loading finished run folders (as written by mapex.results) for the evaluation report.
+
+A run folder holds metrics.json (AUCs, world, method, start), curves.csv (the sampled metric
+curves) and optionally snapshots.npz (maps at a few steps). Unreadable folders are skipped
+with a warning rather than failing the whole report, since a results folder may hold a few
+broken or half-written runs.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sys
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mapex.results import CURVES_FILE, METRICS_FILE, SNAPSHOTS_FILE
+
+METRICS = ("coverage", "iou", "tu")
+METRIC_LABELS = {"coverage": "Coverage", "iou": "IoU", "tu": "TU"}
+
+Warn = Callable[[str], None]
+
+
+class ReportError(ValueError):
+    """Input the report cannot be made from; the message names the cause."""
+
+
+def warn_stderr(message: str) -> None:
+    """Default warning sink: one line on stderr."""
+    print(f"mapex.report: warning: {message}", file=sys.stderr)
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """One finished run: its metrics.json and its curves (`tu` NaN where not sampled)."""
+
+    path: Path
+    metrics: dict
+    steps: np.ndarray  # int64 sample steps
+    coverage: np.ndarray
+    iou: np.ndarray
+    tu: np.ndarray
+
+    @property
+    def name(self) -> str:
+        return self.path.name
+
+    @property
+    def method(self) -> str:
+        return str(self.metrics["method"])
+
+    @property
+    def world(self) -> str:
+        return str(self.metrics["world"])
+
+    @property
+    def start_index(self) -> int:
+        return int(self.metrics["start_index"])
+
+    @property
+    def seed(self) -> int:
+        return int(self.metrics.get("seed", 0))
+
+    @property
+    def early_termination(self) -> bool:
+        return bool(self.metrics.get("early_termination", False))
+
+    @property
+    def degraded(self) -> bool:
+        """True when G was missing at some planning step or metric sample of the run."""
+        return bool(self.metrics.get("degraded_steps")) or bool(
+            self.metrics.get("degraded_metric_samples")
+        )
+
+    def auc(self, metric: str) -> float:
+        """The run's AUC of `metric` (NaN when the run has none, e.g. no TU sample)."""
+        value = self.metrics["auc"].get(metric)
+        return float("nan") if value is None else float(value)
+
+    def curve(self, metric: str) -> np.ndarray:
+        return {"coverage": self.coverage, "iou": self.iou, "tu": self.tu}[metric]
+
+
+def load_runs(
+    results_dir: Path, warn: Warn = warn_stderr, exclude: Iterable[Path] = ()
+) -> list[RunRecord]:
+    """Every finished run folder of `results_dir`, sorted by name; hidden (staging) folders and
+    `exclude` are ignored, unreadable folders skipped with one warning line each."""
+    excluded = {Path(p).resolve() for p in exclude}
+    runs = []
+    for folder in sorted(Path(results_dir).iterdir()):
+        if not folder.is_dir() or folder.name.startswith(".") or folder.resolve() in excluded:
+            continue
+        try:
+            runs.append(load_run(folder))
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            warn(f"skipping {folder.name}: {error}")
+    return runs
+
+
+def load_run(folder: Path) -> RunRecord:
+    """One run folder (ReportError / OSError / ValueError when it is incomplete or corrupt)."""
+    metrics_path = folder / METRICS_FILE
+    if not metrics_path.is_file():
+        raise ReportError(f"no {METRICS_FILE}")
+    metrics = json.loads(metrics_path.read_text())
+    if not isinstance(metrics, dict):
+        raise ReportError(f"{METRICS_FILE} is not an object")
+    missing = [k for k in ("world", "method", "start_index", "auc") if k not in metrics]
+    if missing:
+        raise ReportError(f"{METRICS_FILE} lacks {', '.join(missing)}")
+    steps, coverage, iou, tu = _read_curves(folder / CURVES_FILE)
+    return RunRecord(folder, metrics, steps, coverage, iou, tu)
+
+
+def _read_curves(path: Path) -> tuple[np.ndarray, ...]:
+    with path.open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    if rows and not set(("step", *METRICS)) <= set(rows[0]):
+        raise ReportError(f"{path.name} lacks one of the columns step, {', '.join(METRICS)}")
+    steps = np.array([int(row["step"]) for row in rows], dtype=np.int64)
+    values = [
+        np.array([float(row[m]) if row[m] else math.nan for row in rows], dtype=np.float64)
+        for m in METRICS
+    ]
+    return (steps, *values)
+
+
+@dataclass(frozen=True)
+class Snapshots:
+    """Maps kept at a few steps: observed codes and G's map (uint8 q / 255, may be absent)."""
+
+    steps: np.ndarray
+    observed: np.ndarray
+    prediction: np.ndarray | None
+
+    def at(self, step: int) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """(observed, prediction) at `step`, or None when the run has no snapshot there."""
+        where = np.flatnonzero(self.steps == step)
+        if where.size == 0:
+            return None
+        i = int(where[0])
+        return self.observed[i], None if self.prediction is None else self.prediction[i]
+
+
+def has_snapshots(run: RunRecord) -> bool:
+    """True when the run folder holds a snapshots.npz."""
+    return (run.path / SNAPSHOTS_FILE).is_file()
+
+
+def load_snapshots(run: RunRecord) -> Snapshots | None:
+    """The run's snapshots.npz, or None when it has none (older runs)."""
+    path = run.path / SNAPSHOTS_FILE
+    if not path.is_file():
+        return None
+    with np.load(path) as data:
+        prediction = data["prediction"] if "prediction" in data.files else None
+        return Snapshots(data["steps"], data["observed"], prediction)
+
+
+def load_snapshots_or_warn(run: RunRecord, warn: Warn = warn_stderr) -> Snapshots | None:
+    """The run's snapshots, or None with one warning when its snapshots.npz is unreadable
+    (the figure then shows that run's panels as missing instead of failing the report)."""
+    try:
+        return load_snapshots(run)
+    except (OSError, ValueError, KeyError) as error:
+        warn(f"{run.name}: unreadable {SNAPSHOTS_FILE} ({error})")
+        return None

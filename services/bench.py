@@ -1,0 +1,169 @@
+"""`python -m services.bench`: what the distribution costs and what the pool buys (figures).
+
+On one map (default: KTH 50015847, the largest development map) it measures
+1. the per-step overhead of a distributed `nearest` episode (world, four workers and a
+   planner, through `services.up`) over the same episode in one process (same predictor,
+   one torch thread), from the episode loop's wall time in each run's metrics.json;
+2. a 1000-step `mapex` episode through `services.up`: wall time of the whole command
+   (start-up included) and the peak total memory (RSS) of all its processes;
+3. two runs at once sharing the pool, with one worker per member and with two.
+Each figure is a median over `--repeat` runs. Benchmarks print figures; they never fail.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import torch
+
+from mapex.bench import DEFAULT_MAP
+from mapex.config import ExplorationConfig
+from mapex.episode import run_episode
+from mapex.prediction.learned import LearnedEnsemble
+from mapex.worlds import load_world
+from services.supervisor import claim_hub
+
+MEMORY_POLL_S = 0.5
+PAGE_KIB = 4
+TARGETS = {"overhead_pct": 20.0, "mapex_wall_s": 90.0, "memory_gib": 4.0}
+
+
+def tree_rss_kib(root_pid: int) -> int:
+    """Total resident memory of `root_pid` and all its descendants, in KiB (from /proc)."""
+    children: dict[int, list[int]] = {}
+    rss: dict[int, int] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (FileNotFoundError, ProcessLookupError, IndexError):
+            continue
+        pid = int(stat.parent.name)
+        children.setdefault(int(fields[1]), []).append(pid)
+        rss[pid] = int(fields[21]) * PAGE_KIB
+    total, stack = 0, [root_pid]
+    while stack:
+        pid = stack.pop()
+        total += rss.get(pid, 0)
+        stack.extend(children.get(pid, []))
+    return total
+
+
+def run_up(out_dir: Path, world: str, method: str, steps: int, *extra: str) -> dict:
+    """One `services.up` run: wall time, peak memory and the metrics.json of each run."""
+    port = 7480
+    while not claim_hub(f"tcp/127.0.0.1:{port}"):
+        port += 1
+    command = [
+        sys.executable, "-m", "services.up", "--world", world, "--method", method,
+        "--steps", str(steps), "--out", str(out_dir), "--no-progress",
+        "--listen", f"tcp/127.0.0.1:{port}", "--run-prefix", "bench", *extra,
+    ]  # fmt: skip
+    began = time.perf_counter()
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    peak = [0]
+
+    def sample() -> None:
+        while process.poll() is None:
+            peak[0] = max(peak[0], tree_rss_kib(process.pid))
+            time.sleep(MEMORY_POLL_S)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    code = process.wait()
+    wall_s = time.perf_counter() - began
+    sampler.join()
+    if code != 0:
+        raise RuntimeError(f"services.up exited with {code}: {' '.join(command)}")
+    runs = [json.loads(p.read_text()) for p in sorted(out_dir.glob("*/metrics.json"))]
+    return {"wall_s": wall_s, "peak_gib": peak[0] / 2**20, "runs": runs}
+
+
+def in_process_loop_s(world_spec: str, method: str, steps: int) -> float:
+    """Episode-loop wall time of the same episode in one process (one torch thread)."""
+    torch.set_num_threads(1)
+    predictor = LearnedEnsemble()
+    config = ExplorationConfig(steps=steps)
+    result = run_episode(load_world(world_spec), method, predictor, 0, 0, config)
+    return result.wall_time_s
+
+
+def line(name: str, value: float, unit: str, target: float | None = None) -> None:
+    bound = f"  (target <= {target:g} {unit})" if target is not None else ""
+    print(f"{name:<58} {value:9.2f} {unit}{bound}", flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m services.bench", description=__doc__)
+    parser.add_argument("--world", default=str(DEFAULT_MAP) if DEFAULT_MAP.is_dir() else "default")
+    parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--repeat", type=int, default=3, help="runs per figure (median)")
+    parser.add_argument("--pool-repeat", type=int, default=1, help="runs per pool figure")
+    parser.add_argument(
+        "--parts",
+        default="overhead,mapex,pool",
+        help="comma-separated subset of overhead,mapex,pool (default: all)",
+    )
+    args = parser.parse_args(argv)
+    print(f"world {args.world}, {args.steps} steps, median of {args.repeat}", flush=True)
+    with tempfile.TemporaryDirectory() as scratch:
+        root = Path(scratch)
+
+        def ups(name: str, method: str, *extra: str, repeat: int = args.repeat) -> list[dict]:
+            return [
+                run_up(root / f"{name}{i}", args.world, method, args.steps, *extra)
+                for i in range(repeat)
+            ]
+
+        parts = set(args.parts.split(","))
+        if "overhead" in parts:
+            bench_overhead(args, ups)
+        if "mapex" in parts:
+            bench_mapex(ups)
+        if "pool" in parts:
+            bench_pool(args, ups)
+    return 0
+
+
+def bench_overhead(args: argparse.Namespace, ups) -> None:
+    """Item 1: the `nearest` episode loop distributed versus in one process."""
+    local = statistics.median(
+        in_process_loop_s(args.world, "nearest", args.steps) for _ in range(args.repeat)
+    )
+    remote = statistics.median(run["runs"][0]["wall_time_s"] for run in ups("nearest", "nearest"))
+    line("nearest episode loop, in one process", local, "s")
+    line("nearest episode loop, distributed", remote, "s")
+    overhead_pct = (remote / local - 1) * 100
+    line("per-step overhead of the distribution", overhead_pct, "%", TARGETS["overhead_pct"])
+
+
+def bench_mapex(ups) -> None:
+    """Item 2: a whole `mapex` run through services.up: wall time and peak memory."""
+    mapex = ups("mapex", "mapex")
+    wall_s, peak_gib = _median(mapex, "wall_s"), _median(mapex, "peak_gib")
+    line("mapex episode via services.up, whole command", wall_s, "s", TARGETS["mapex_wall_s"])
+    line("peak memory of all processes (mapex run)", peak_gib, "GiB", TARGETS["memory_gib"])
+
+
+def bench_pool(args: argparse.Namespace, ups) -> None:
+    """Item 3: two runs at once sharing the pool, one or two workers per member."""
+    for replicas in (1, 2):
+        extra = ("--runs", "2", "--replicas", str(replicas))
+        shared = ups(f"pool{replicas}-", "mapex", *extra, repeat=args.pool_repeat)
+        name = f"two mapex runs at once, {replicas} worker(s) per member (median of {len(shared)})"
+        line(name, _median(shared, "wall_s"), "s")
+
+
+def _median(runs: list[dict], key: str) -> float:
+    return statistics.median(run[key] for run in runs)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,324 @@
+"""`python -m services.evaluate`: the paper's experiment, every method x map x start x seed.
+
+    python -m services.evaluate --maps DIR [DIR|generated:SEED ...] [--methods ...]
+        [--ablations] [--starts 0,1,2,3] [--steps 1000] [--seeds 0] [--jobs 2]
+        [--out results/evaluation] [--set SECTION.FIELD=VALUE ...] [Zenoh flags]
+
+Episodes run in parallel planner processes (`services.planner --world ... --start ...`,
+`--jobs` at a time) that share one predictor pool: the workers spawned here, plus any
+worker on another machine that joins the same Zenoh network (`--connect`, see deploy/), so
+adding workers adds throughput. Each finished episode is written atomically to
+`<out>/<world>-<method>-start<i>-seed<s>/`; rerunning the same command skips those, so a
+kill at any moment loses at most the episodes in flight. At the end the report
+(`python -m mapex.report <out>`) is written to `<out>/report/`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import logging
+import shlex
+import shutil
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+from tqdm import tqdm
+
+from mapex.config import (
+    ConfigError,
+    ExplorationConfig,
+    ServicesConfig,
+    add_override_argument,
+    apply_overrides,
+)
+from mapex.methods import ABLATIONS, MAIN_COMPARISON, METHODS
+from mapex.prediction.base import MEMBER_NAMES
+from mapex.results import METRICS_FILE
+from mapex.worlds import WorldError, load_world
+from services.codec import DEFAULT_SERVICES, ProtocolError
+from services.keys import ID_MAX_CHARS, robot_key_pattern
+from services.messages import MetricsMessage, decode_message
+from services.serving import configure_logging, stop_on_signals
+from services.supervisor import ProcessSpec, Supervisor
+from services.up import POLL_S, hub_session_config, parse_member_list, worker_specs
+from services.zenoh_config import HUB_HELP, ZenohConfigError, add_zenoh_arguments, open_session
+
+EXIT_FAILED = 1  # some episodes failed (the others are kept)
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+DEFAULT_OUT = Path("results/evaluation")
+RUN_LOG_FILE = "evaluations.jsonl"  # one line per invocation: command, runs, wall time
+
+log = logging.getLogger("services.evaluate")
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One run of the experiment; `name` is its results folder (as `mapex.results.run_name`)."""
+
+    world_spec: str
+    world_name: str
+    method: str
+    start: int
+    seed: int
+
+    @property
+    def name(self) -> str:
+        world = self.world_name.replace(":", "_").replace("/", "_")
+        return f"{world}-{self.method}-start{self.start}-seed{self.seed}"
+
+    @property
+    def run_id(self) -> str:
+        """A key-safe run id (lower case, at most ID_MAX_CHARS)."""
+        safe = "".join(c if c.isalnum() or c in "_-" else "_" for c in self.name.lower())
+        return safe[-ID_MAX_CHARS:]
+
+
+def plan_episodes(
+    world_specs: list[str], methods: list[str], starts: list[int], seeds: list[int]
+) -> list[Episode]:
+    """Every combination, worlds outermost; loads each world once to check it and name it."""
+    names = {spec: load_world(spec).name for spec in world_specs}
+    return [
+        Episode(spec, names[spec], method, start, seed)
+        for spec, method, start, seed in itertools.product(world_specs, methods, starts, seeds)
+    ]
+
+
+def finished(episode: Episode, out_dir: Path) -> bool:
+    """Whether the episode's results folder is complete (folders appear whole, by rename)."""
+    return (out_dir / episode.name / METRICS_FILE).is_file()
+
+
+def remove_staging(out_dir: Path) -> int:
+    """Delete half-written folders a kill left behind (names start with '.'); how many."""
+    stale = [p for p in out_dir.glob(".*") if p.is_dir()] if out_dir.is_dir() else []
+    for path in stale:
+        shutil.rmtree(path, ignore_errors=True)
+    return len(stale)
+
+
+def planner_spec(
+    episode: Episode, args: argparse.Namespace, out_dir: Path, flags: list[str]
+) -> ProcessSpec:
+    planner_args = [
+        "--run", episode.run_id, "--world", episode.world_spec, "--start", str(episode.start),
+        "--method", episode.method, "--seed", str(episode.seed), "--steps", str(args.steps),
+        "--out", str(out_dir / episode.name), "--no-progress",
+    ]  # fmt: skip
+    for override in args.overrides:
+        planner_args += ["--set", override]
+    return ProcessSpec(f"episode-{episode.run_id}", "services.planner", (*planner_args, *flags))
+
+
+class Progress:
+    """Steps done per run id, from the metrics the planners publish (every 50 steps)."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self.steps: dict[str, int] = {}
+        self._lock = threading.Lock()
+        self._subscriber = session.declare_subscriber(
+            robot_key_pattern("metrics"), self._on_metrics
+        )
+
+    def of(self, run_id: str) -> int:
+        with self._lock:
+            return self.steps.get(run_id, 0)
+
+    def _on_metrics(self, sample: zenoh.Sample) -> None:
+        try:
+            message = decode_message(sample.payload.to_bytes(), (MetricsMessage,))
+        except ProtocolError as error:
+            log.warning("dropped a metrics message: %s", error)
+            return
+        run_id = str(sample.key_expr).split("/")[2]
+        with self._lock:
+            self.steps[run_id] = max(self.steps.get(run_id, 0), message.t)
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+
+
+def run_episodes(
+    supervisor: Supervisor,
+    todo: list[Episode],
+    args: argparse.Namespace,
+    flags: list[str],
+    progress: Progress,
+    stop: threading.Event,
+) -> tuple[int, list[str]]:
+    """Run `todo`, `args.jobs` at a time; (episodes finished, failure lines)."""
+    queue, running, done, failures = list(todo), {}, 0, []
+    bar = tqdm(
+        total=len(todo) * args.steps,
+        unit="step",
+        file=sys.stderr,
+        disable=args.no_progress,
+        desc=f"{len(todo)} episodes",
+    )
+    with bar:
+        while (queue or running) and not stop.is_set():
+            supervisor.poll()
+            while queue and len(running) < args.jobs:
+                episode = queue.pop(0)
+                spec = planner_spec(episode, args, args.out, flags)
+                supervisor.start(spec)
+                running[spec.name] = episode
+            for name, episode in list(running.items()):
+                code = supervisor.returncode(name)
+                if code is None:
+                    continue
+                del running[name]
+                if code == 0 and finished(episode, args.out):
+                    done += 1
+                else:
+                    failures.append(f"{episode.name}: planner exited with {code}")
+            steps = done * args.steps + sum(progress.of(e.run_id) for e in running.values())
+            bar.update(min(steps, bar.total) - bar.n)
+            bar.set_postfix_str(f"{done} done, {len(failures)} failed", refresh=False)
+            time.sleep(POLL_S)
+    return done, failures
+
+
+def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) -> int:
+    began = time.monotonic()
+    apply_overrides(ExplorationConfig(), args.overrides)
+    methods = list(args.methods) + (list(ABLATIONS) if args.ablations else [])
+    episodes = plan_episodes(args.maps, methods, args.starts, args.seeds)
+    args.out.mkdir(parents=True, exist_ok=True)
+    if remove_staging(args.out):
+        log.info("removed half-written runs of an interrupted evaluation")
+    todo = [e for e in episodes if not finished(e, args.out)]
+    already = len(episodes) - len(todo)
+    log.info("%d episodes: %d already finished, %d to run", len(episodes), already, len(todo))
+    own_config, flags = hub_session_config(args, services)
+    stop = stop_on_signals()
+    session = open_session(own_config)
+    progress = Progress(session)
+    supervisor = Supervisor(services=services)
+    try:
+        if todo:
+            for spec in worker_specs(args.members, args.replicas, args.threads, flags):
+                supervisor.start(spec)
+        done, failures = run_episodes(supervisor, todo, args, flags, progress, stop)
+    finally:
+        supervisor.stop()
+        progress.close()
+        session.close()
+    wall_s = time.monotonic() - began
+    _log_invocation(args, len(episodes), done, failures, wall_s, stop.is_set())
+    if stop.is_set():
+        print(f"interrupted after {done} episodes; rerun to resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    for line in failures:
+        log.error("%s", line)
+    print(f"{done} episodes run in {wall_s / 60:.1f} min -> {args.out}", file=sys.stderr)
+    if not args.no_report:
+        from mapex.report import main as report_main
+
+        report_main([str(args.out)])
+    return EXIT_FAILED if failures else 0
+
+
+def _log_invocation(
+    args: argparse.Namespace,
+    total: int,
+    done: int,
+    failures: list[str],
+    wall_s: float,
+    interrupted: bool,
+) -> None:
+    record = {
+        "command": "python -m services.evaluate " + shlex.join(sys.argv[1:]),
+        "episodes": total,
+        "ran": done,
+        "failed": len(failures),
+        "interrupted": interrupted,
+        "wall_time_s": round(wall_s, 1),
+        "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }
+    with (args.out / RUN_LOG_FILE).open("a") as handle:
+        handle.write(json.dumps(record) + "\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m services.evaluate", description=__doc__.split("\n\n")[2].strip()
+    )
+    parser.add_argument(
+        "--maps",
+        nargs="+",
+        required=True,
+        metavar="MAP",
+        help="KTH map directories and/or generated:SEED worlds",
+    )
+    parser.add_argument(
+        "--methods",
+        type=_methods,
+        default=list(MAIN_COMPARISON),
+        help="comma-separated (default: " + ",".join(MAIN_COMPARISON) + ")",
+    )
+    parser.add_argument(
+        "--ablations", action="store_true", help="add the ablations " + ",".join(ABLATIONS)
+    )
+    parser.add_argument("--starts", type=_ints, default=[0, 1, 2, 3], help="default: 0,1,2,3")
+    parser.add_argument("--seeds", type=_ints, default=[0], help="comma-separated (default: 0)")
+    parser.add_argument("--steps", type=int, default=1000, help="time budget T (default 1000)")
+    parser.add_argument("--jobs", type=int, default=2, help="episodes at once (default 2)")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="default: %(default)s")
+    add_override_argument(parser)
+    parser.add_argument(
+        "--members",
+        type=parse_member_list,
+        default=MEMBER_NAMES,
+        help="members to spawn workers for, or 'none' (default: all)",
+    )
+    parser.add_argument("--replicas", type=int, default=1, help="workers per member (default 1)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads per worker")
+    parser.add_argument("--no-report", action="store_true", help="skip the report at the end")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    add_zenoh_arguments(parser, HUB_HELP)
+    return parser
+
+
+def _methods(text: str) -> list[str]:
+    names = [item.strip() for item in text.split(",") if item.strip()]
+    unknown = [name for name in names if name not in METHODS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(
+            f"unknown method {', '.join(unknown) or text!r} (choose from {', '.join(METHODS)})"
+        )
+    return names
+
+
+def _ints(text: str) -> list[int]:
+    items = text.split(",")
+    if not all(item.strip().isdigit() for item in items):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of integers")
+    return [int(item) for item in items]
+
+
+def run_cli(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    for flag in ("steps", "jobs", "replicas", "threads"):
+        if getattr(args, flag) < 1:
+            parser.error(f"--{flag} must be at least 1")
+    if any(start > 3 for start in args.starts):
+        parser.error("--starts are start poses 0-3")
+    configure_logging("evaluate")
+    try:
+        return main(args)
+    except (WorldError, ConfigError, ZenohConfigError, ValueError, OSError) as error:
+        print(f"services.evaluate: error: {' '.join(str(error).split())}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli())

@@ -1,0 +1,247 @@
+"""The planner (robot brain): one robot's exploration episode against a world process.
+
+    python -m services.planner --run RUN [--robot 0] [--method mapex] [--steps 1000]
+        [--seed 0] [--out DIR] [--set SECTION.FIELD=VALUE ...] [--mode ...] [--connect ...]
+
+It runs the same loop as `python -m mapex run` (`mapex.episode.run_episode`), with the
+world process as the step source (`services.world_client.ZenohWorld`) and the predictor
+workers as the ensemble (`services.ensemble_client.ZenohEnsemble`, every member asked in
+parallel). A member that does not answer in time is left out; with fewer than two members
+the re-plan scores frontiers on the observed map, and the record lists those steps
+(DESIGN.md, Reliability). After each step it publishes the observed map, the predictions
+(main, mean, variance), frontiers with scores, goal, path, metrics and status on
+`mapex/@v1/<run>/<robot>/...` (`services.publishing`), and at the end writes the same
+results folder as `python -m mapex run`. With `--world SPEC --start I` the planner simulates
+the world itself (no world process; batch evaluation runs episodes this way) and still asks
+the predictor pool. Bad flags: one line, exit 2; the world gone or
+refusing a step: one line, exit 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+from tqdm import tqdm
+
+from mapex.config import (
+    ConfigError,
+    ExplorationConfig,
+    ServicesConfig,
+    add_override_argument,
+    apply_overrides,
+)
+from mapex.episode import EpisodeResult, run_episode
+from mapex.methods import METHODS
+from mapex.prediction.base import MEMBER_NAMES
+from mapex.results import run_name, write_results
+from mapex.worlds import World, WorldError, load_world, start_poses
+from services.codec import DEFAULT_SERVICES
+from services.ensemble_client import ZenohEnsemble
+from services.keys import ID_MAX_CHARS, alive_planner_key, is_valid_id, robot_id
+from services.publishing import RunPublisher
+from services.serving import configure_logging, supervisor_gone
+from services.world_client import StepRefusedError, WorldUnavailableError, ZenohWorld
+from services.zenoh_config import (
+    ZenohConfigError,
+    add_zenoh_arguments,
+    open_session,
+    zenoh_config_from_args,
+)
+
+EXIT_FAILED = 1  # the world went away or refused a step
+EXIT_USAGE = 2  # bad flags or Zenoh configuration
+DEFAULT_RESULTS_DIR = Path("results")
+
+log = logging.getLogger("services.planner")
+
+Progress = Callable[[int], None]
+
+
+class PlannerError(RuntimeError):
+    """The run cannot start or go on (no world, start not found); the message is one line."""
+
+
+@dataclass(frozen=True)
+class LocalWorld:
+    """Simulate the world in the planner: the world to load and the start pose (0-3)."""
+
+    spec: str
+    start_index: int
+
+
+def explore(
+    session: zenoh.Session,
+    run: str,
+    robot: int,
+    method: str,
+    seed: int = 0,
+    exploration: ExplorationConfig | None = None,
+    services: ServicesConfig = DEFAULT_SERVICES,
+    progress: Progress | None = None,
+    local: LocalWorld | None = None,
+) -> tuple[EpisodeResult, World]:
+    """Run robot `robot`'s episode of `run` with the predictor processes, and the world
+    process (or the `local` world simulated here)."""
+    exploration = exploration or ExplorationConfig()
+    if local is None:
+        source = ZenohWorld(session, run, services)
+        world, start_index = _remote_start(source, run, robot, exploration)
+    else:
+        source, world, start_index = None, load_world(local.spec), local.start_index
+    publisher = RunPublisher(session, run, robot_id(robot), services)
+    token = session.liveliness().declare_token(alive_planner_key(run))
+    try:
+        with ZenohEnsemble(session, services) as ensemble:
+            publisher.status(0, "starting", f"waiting for members {', '.join(MEMBER_NAMES)}")
+            if not ensemble.wait_for_workers(timeout_s=services.workers_wait_s):
+                log.warning("not every member has a live worker: the run starts degraded")
+            publisher.status(0, "running", f"{method} on {world.name}")
+
+            def on_step(t, explorer, recorder) -> None:
+                if supervisor_gone():
+                    raise PlannerError("the supervisor is gone: run abandoned")
+                publisher.step(t, explorer, recorder)
+                if progress is not None:
+                    progress(t)
+
+            result = run_episode(
+                world, method, ensemble, start_index, seed, exploration, on_step,
+                source=source, robot=robot,
+            )  # fmt: skip
+        publisher.finished(result, _summary_line(result))
+    except Exception as error:
+        publisher.status(0, "failed", f"{type(error).__name__}: {error}")
+        raise
+    finally:
+        publisher.close()
+        token.undeclare()
+    return result, world
+
+
+def _remote_start(
+    source: ZenohWorld, run: str, robot: int, exploration: ExplorationConfig
+) -> tuple[World, int]:
+    """The world process's world and the start index (0-3) of robot `robot` in it."""
+    info, world = source.fetch()
+    if not 0 <= robot < len(info.starts):
+        raise PlannerError(f"run {run} has {len(info.starts)} robots, there is no robot {robot}")
+    return world, _start_index(world, info.starts[robot], exploration)
+
+
+def _start_index(world: World, start, exploration: ExplorationConfig) -> int:
+    """Which of the world's start poses (0-3) the world placed this robot at."""
+    starts = start_poses(world, exploration.world.start_clearance_cells)
+    cell = (int(start[0]), int(start[1]))
+    if cell not in starts:
+        raise PlannerError(f"the world placed the robot at {cell}, not at a start pose {starts}")
+    return starts.index(cell)
+
+
+def _summary_line(result: EpisodeResult) -> str:
+    auc = result.curves.auc()
+    degraded = len(result.stats.degraded_steps)
+    return (
+        f"{result.method} on {result.world} (start {result.start_index}): coverage AUC "
+        f"{auc['coverage']:.3f}, IoU AUC {auc['iou']:.3f}, TU AUC {auc['tu']:.3f}, "
+        f"final coverage {result.curves.coverage[-1]:.3f}, degraded re-plans {degraded}"
+    )
+
+
+def main(
+    config: zenoh.Config,
+    run: str,
+    robot: int = 0,
+    method: str = "mapex",
+    seed: int = 0,
+    out: Path | None = None,
+    exploration: ExplorationConfig | None = None,
+    services: ServicesConfig = DEFAULT_SERVICES,
+    progress: Progress | None = None,
+    local: LocalWorld | None = None,
+) -> tuple[EpisodeResult, Path]:
+    """Open a session, run the episode, write its results folder; return (result, folder)."""
+    session = open_session(config)
+    try:
+        result, world = explore(
+            session, run, robot, method, seed, exploration, services, progress, local
+        )
+    finally:
+        session.close()
+    out_dir = out or DEFAULT_RESULTS_DIR / run_name(result)
+    write_results(result, world, out_dir)
+    return result, out_dir
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line flags: run, robot, method, steps, seed, output and Zenoh's."""
+    parser = argparse.ArgumentParser(
+        prog="python -m services.planner", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument("--run", required=True, help="run id, the <run> chunk of the keys")
+    parser.add_argument("--robot", type=int, default=0, help="robot index in the run (default 0)")
+    parser.add_argument("--method", default="mapex", choices=sorted(METHODS))
+    parser.add_argument("--steps", type=int, default=1000, help="time budget T (default 1000)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (UPEN's RRT); default 0")
+    parser.add_argument("--out", type=Path, default=None, help="results folder")
+    add_override_argument(parser)
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument(
+        "--world",
+        default=None,
+        help="simulate this world here instead of asking a world process: 'default', "
+        "'generated:SEED' or a KTH map directory (needs --start)",
+    )
+    parser.add_argument("--start", type=int, choices=range(4), default=None, help="with --world")
+    add_zenoh_arguments(parser)
+    return parser
+
+
+def run_cli(argv: list[str] | None = None) -> int:
+    """Parse flags and run; 0 on success, 1 when the run failed, 2 on a bad flag."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not is_valid_id(args.run):
+        parser.error(f"--run {args.run!r} must match [a-z0-9_-]{{1,{ID_MAX_CHARS}}}")
+    if args.steps < 1 or args.robot < 0:
+        parser.error("--steps must be at least 1 and --robot non-negative")
+    if (args.world is None) != (args.start is None):
+        parser.error("--world and --start go together")
+    local = None if args.world is None else LocalWorld(args.world, args.start)
+    configure_logging(f"planner[{args.run}/{robot_id(args.robot)}]")
+    try:
+        exploration = apply_overrides(ExplorationConfig(steps=args.steps), args.overrides)
+        config = zenoh_config_from_args(args)
+    except (ConfigError, ZenohConfigError) as error:
+        print(f"services.planner: error: {error}", file=sys.stderr)
+        return EXIT_USAGE
+    bar = tqdm(total=args.steps, unit="step", disable=args.no_progress, file=sys.stderr)
+    try:
+        result, out_dir = main(
+            config, args.run, args.robot, args.method, args.seed, args.out, exploration,
+            progress=lambda t: bar.update(t - bar.n), local=local,
+        )  # fmt: skip
+    except WorldError as error:
+        log.error("%s", error)
+        return EXIT_USAGE
+    except (WorldUnavailableError, StepRefusedError, PlannerError) as error:
+        log.error("%s", error)
+        return EXIT_FAILED
+    except KeyboardInterrupt:
+        log.error("interrupted")
+        return 130
+    finally:
+        bar.close()
+    print(f"{_summary_line(result)} -> {out_dir}")
+    return 0
+
+
+if __name__ == "__main__":
+    threading.current_thread().name = "planner"
+    sys.exit(run_cli())

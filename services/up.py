@@ -1,0 +1,308 @@
+"""`python -m services.up`: the whole distributed simulator on one machine, supervised.
+
+With no arguments it serves the Zenoh hub on tcp/127.0.0.1:7447, spawns the world simulator
+(the embedded default world), one predictor worker per ensemble member (g, g1, g2, g3) and
+the planner, runs a 1000-step MapEx episode with a progress bar and writes the same results
+folder as `python -m mapex run` (results/<world>-<method>-start<i>-seed<s>).
+
+Every child's log lines are forwarded with its name; a predictor worker that dies is
+restarted (the planner goes on without that member meanwhile and the record notes the
+degraded re-plans); Ctrl-C stops every child within a few seconds. `--runs N` runs N
+episodes at once (starts start, start+1, ... mod 4; seeds seed, seed+1, ...) sharing the
+one predictor pool; `--robots N` puts N robots in each world. With `--connect` (e.g. a
+router on another machine, see deploy/README.md) the hub is not served here and every
+child connects there; `--members none` spawns no worker and uses the workers already there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+from tqdm import tqdm
+
+from mapex.config import (
+    ConfigError,
+    ExplorationConfig,
+    ServicesConfig,
+    add_override_argument,
+    apply_overrides,
+)
+from mapex.methods import METHODS
+from mapex.prediction.base import MEMBER_NAMES
+from mapex.worlds import DEFAULT_SPEC, WorldError, load_world
+from services.codec import DEFAULT_SERVICES, ProtocolError
+from services.keys import ID_MAX_CHARS, is_valid_id, robot_id, robot_key
+from services.messages import PoseMessage, decode_message
+from services.serving import configure_logging, stop_on_signals
+from services.supervisor import ProcessSpec, Supervisor, claim_hub
+from services.zenoh_config import (
+    HUB_HELP,
+    ZenohConfigError,
+    add_zenoh_arguments,
+    open_session,
+    zenoh_config,
+)
+
+EXIT_FAILED = 1  # a planner failed
+EXIT_USAGE = 2  # bad flags, world or Zenoh configuration
+EXIT_INTERRUPTED = 130
+POLL_S = 0.2  # supervision loop period
+RUN_PREFIX_MAX_CHARS = ID_MAX_CHARS - 8  # room for the '-<k>' run suffix
+
+log = logging.getLogger("services.up")
+
+
+@dataclass(frozen=True)
+class Run:
+    """One episode: a world process and one planner per robot."""
+
+    run_id: str
+    starts: tuple[int, ...]
+    seed: int
+
+
+def plan_runs(args: argparse.Namespace) -> list[Run]:
+    """The runs asked for: run k starts its robots at start + k, start + k + 1, ... (mod 4)."""
+    prefix = args.run_prefix or f"up{os.getpid()}"
+    return [
+        Run(
+            f"{prefix}-{k}",
+            tuple((args.start + k + i) % 4 for i in range(args.robots)),
+            args.seed + k,
+        )
+        for k in range(args.runs)
+    ]
+
+
+def worker_specs(
+    members: tuple[str, ...], replicas: int, threads: int, zenoh_flags: list[str]
+) -> list[ProcessSpec]:
+    """`replicas` predictor workers per member, restarted when they die."""
+    return [
+        ProcessSpec(
+            f"predictor-{member}" + (f"-{replica}" if replicas > 1 else ""),
+            "services.predictor",
+            ("--member", member, "--threads", str(threads), *zenoh_flags),
+            restart=True,
+        )
+        for member in members
+        for replica in range(replicas)
+    ]
+
+
+def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str]) -> dict:
+    """Process specs by role: 'workers', 'worlds', 'planners'."""
+    workers = worker_specs(args.members, args.replicas, args.threads, zenoh_flags)
+    worlds, planners = [], []
+    for run in runs:
+        starts = ",".join(str(s) for s in run.starts)
+        worlds.append(
+            ProcessSpec(
+                f"world-{run.run_id}",
+                "services.world",
+                (
+                    "--run",
+                    run.run_id,
+                    "--world",
+                    args.world,
+                    "--robots",
+                    str(len(run.starts)),
+                    "--starts",
+                    starts,
+                    *zenoh_flags,
+                ),
+            )  # fmt: skip
+        )
+        for robot in range(len(run.starts)):
+            planner_args = [
+                "--run", run.run_id, "--robot", str(robot), "--method", args.method,
+                "--steps", str(args.steps), "--seed", str(run.seed), "--no-progress",
+            ]  # fmt: skip
+            if args.out is not None:
+                planner_args += ["--out", str(args.out / f"{run.run_id}-{robot_id(robot)}")]
+            for override in args.overrides:
+                planner_args += ["--set", override]
+            planners.append(
+                ProcessSpec(
+                    f"planner-{run.run_id}-{robot_id(robot)}",
+                    "services.planner",
+                    (*planner_args, *zenoh_flags),
+                )
+            )
+    return {"workers": workers, "worlds": worlds, "planners": planners}
+
+
+def hub_session_config(args: argparse.Namespace, services: ServicesConfig) -> tuple:
+    """(Zenoh config of up's own session, flags for the children)."""
+    flags: list[str] = []
+    if args.mode:
+        flags += ["--mode", args.mode]
+    if args.config:
+        flags += ["--config", args.config]
+    if args.connect:  # a hub (router) elsewhere: everyone connects there
+        for endpoint in args.connect:
+            flags += ["--connect", endpoint]
+        own = zenoh_config(args.mode, args.connect, args.listen, args.config, services)
+        return own, flags
+    listen = args.listen or [services.hub_endpoint]
+    if args.listen or claim_hub(services.hub_endpoint):
+        for endpoint in listen:
+            flags += ["--connect", endpoint]
+        return zenoh_config(args.mode, [], listen, args.config, services), flags
+    log.info("a hub already listens on %s: joining it", services.hub_endpoint)
+    return zenoh_config(args.mode, None, None, args.config, services), flags
+
+
+class StepCounter:
+    """Counts the steps of every robot from the poses the worlds publish."""
+
+    def __init__(self, session: zenoh.Session, runs: list[Run]) -> None:
+        self.steps: dict[str, int] = {}
+        self._lock = threading.Lock()
+        self._subscribers = [
+            session.declare_subscriber(robot_key(run.run_id, robot_id(i), "pose"), self._on_pose)
+            for run in runs
+            for i in range(len(run.starts))
+        ]
+
+    def total(self) -> int:
+        with self._lock:
+            return sum(self.steps.values())
+
+    def _on_pose(self, sample: zenoh.Sample) -> None:
+        try:
+            pose = decode_message(sample.payload.to_bytes(), (PoseMessage,))
+        except ProtocolError as error:
+            log.warning("dropped a pose: %s", error)
+            return
+        with self._lock:
+            key = str(sample.key_expr)
+            self.steps[key] = max(self.steps.get(key, 0), pose.t)
+
+    def close(self) -> None:
+        for subscriber in self._subscribers:
+            subscriber.undeclare()
+
+
+def supervise(
+    supervisor: Supervisor,
+    planners: list[ProcessSpec],
+    counter: StepCounter,
+    total_steps: int,
+    stop: threading.Event,
+    show_progress: bool,
+) -> int:
+    """Poll until every planner exits (or `stop`); return the exit code of the whole run."""
+    pending = {spec.name for spec in planners}
+    failed: list[str] = []
+    with tqdm(total=total_steps, unit="step", disable=not show_progress, file=sys.stderr) as bar:
+        while pending and not stop.is_set():
+            supervisor.poll()
+            for name in sorted(pending):
+                code = supervisor.returncode(name)
+                if code is not None:
+                    pending.discard(name)
+                    if code != 0:
+                        failed.append(f"{name} exited with {code}")
+            bar.update(min(counter.total(), total_steps) - bar.n)
+            time.sleep(POLL_S)
+    if stop.is_set():
+        log.info("interrupted: stopping every process")
+        return EXIT_INTERRUPTED
+    for line in failed:
+        log.error("%s", line)
+    return EXIT_FAILED if failed else 0
+
+
+def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) -> int:
+    """Spawn, supervise and stop everything; the exit code of the run."""
+    load_world(args.world)  # a bad world fails here in one line, before any process starts
+    apply_overrides(ExplorationConfig(), args.overrides)
+    runs = plan_runs(args)
+    own_config, zenoh_flags = hub_session_config(args, services)
+    specs = child_specs(args, runs, zenoh_flags)
+    stop = stop_on_signals()
+    session = open_session(own_config)
+    counter = StepCounter(session, runs)
+    supervisor = Supervisor(services=services)
+    try:
+        for spec in specs["workers"] + specs["worlds"] + specs["planners"]:
+            supervisor.start(spec)
+        total = args.steps * sum(len(run.starts) for run in runs)
+        return supervise(supervisor, specs["planners"], counter, total, stop, not args.no_progress)
+    finally:
+        supervisor.stop()
+        counter.close()
+        session.close()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m services.up",
+        description=__doc__.split("\n\n")[1].replace("\n", " "),
+    )
+    parser.add_argument("--world", default=DEFAULT_SPEC, help="'default', 'generated:SEED' or a "
+                        "KTH map directory (default: %(default)s)")  # fmt: skip
+    parser.add_argument("--method", default="mapex", choices=sorted(METHODS))
+    parser.add_argument("--steps", type=int, default=1000, help="time budget T (default 1000)")
+    parser.add_argument("--start", type=int, default=0, choices=range(4), help="first start pose")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the first run (default 0)")
+    parser.add_argument("--robots", type=int, default=1, help="robots per world (default 1)")
+    parser.add_argument("--runs", type=int, default=1, help="episodes run at once (default 1)")
+    parser.add_argument(
+        "--members",
+        type=parse_member_list,
+        default=MEMBER_NAMES,
+        help="members to spawn workers for, comma-separated, or 'none' (default: g,g1,g2,g3)",
+    )
+    parser.add_argument("--replicas", type=int, default=1, help="workers per member (default 1)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads per worker")
+    parser.add_argument(
+        "--out", type=Path, default=None, help="results parent folder (default: as mapex run)"
+    )
+    parser.add_argument("--run-prefix", default=None, help="run ids are <prefix>-<k>")
+    add_override_argument(parser)
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    add_zenoh_arguments(parser, HUB_HELP)
+    return parser
+
+
+def parse_member_list(text: str) -> tuple[str, ...]:
+    """argparse type of --members: comma-separated member names, or 'none'."""
+    if text == "none":
+        return ()
+    members = tuple(item.strip() for item in text.split(","))
+    unknown = [m for m in members if m not in MEMBER_NAMES]
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown member(s) {', '.join(unknown)}")
+    return members
+
+
+def run_cli(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    for flag in ("steps", "robots", "runs", "replicas", "threads"):
+        if getattr(args, flag) < 1:
+            parser.error(f"--{flag} must be at least 1")
+    if args.run_prefix is not None and not (
+        is_valid_id(args.run_prefix) and len(args.run_prefix) <= RUN_PREFIX_MAX_CHARS
+    ):
+        parser.error(f"--run-prefix must match [a-z0-9_-]{{1,{RUN_PREFIX_MAX_CHARS}}}")
+    configure_logging("up")
+    try:
+        return main(args)
+    except (WorldError, ConfigError, ZenohConfigError, ValueError) as error:
+        print(f"services.up: error: {' '.join(str(error).split())}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli())

@@ -1,0 +1,595 @@
+"""Watch one robot of a run live: a PNG re-rendered as frames arrive, optionally a GIF at the end.
+
+    python -m services.watch --run RUN [--robot r0] [--png watch.png] [--gif FILE.gif]
+        [--every-s 1.0] [--until-finished] [--timeout-s N] [--mode ...] [--connect ...]
+
+The example of an outside tool. It subscribes to the robot's `observed_map`,
+`prediction/mean`, `prediction/variance`, `pose`, `frontiers`, `goal`, `path`, `status` and
+`metrics` keys, and asks each of them once with a `get` (the planner's `LatestPublisher`
+answers with its latest frame), so a watch started mid-run shows the current state at once;
+keys that have not answered yet are asked again every `WatchConfig.get_timeout_s`. At most
+every `--every-s` seconds, if something new arrived, it renders the observed map (pose, path,
+frontiers and goal on top), the prediction mean and the variance into the PNG (written
+atomically). With `--gif` the frames are kept (downscaled, at most `WatchConfig.max_gif_frames`)
+and written as an animated GIF on exit. It exits 0 on SIGINT/SIGTERM, with `--until-finished`
+when the status says finished or failed, and at `--timeout-s` (exit 1 if `--until-finished`
+was asked and the run had not finished). Malformed payloads are logged and dropped.
+Bad flags: one line, exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import logging
+import os
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import zenoh
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from PIL import Image
+
+from mapex.config import WatchConfig
+from mapex.plotting import occupancy_image
+from services.codec import Payload, ProtocolError
+from services.keys import ID_MAX_CHARS, RESERVED_RUN_IDS, is_valid_id, robot_key
+from services.messages import (
+    FrontiersMessage,
+    GoalMessage,
+    MapMessage,
+    Message,
+    MetricsMessage,
+    PathMessage,
+    PoseMessage,
+    StatusMessage,
+    decode_message,
+)
+from services.serving import configure_logging, stop_on_signals
+from services.zenoh_config import (
+    ZenohConfigError,
+    add_zenoh_arguments,
+    open_session,
+    zenoh_config_from_args,
+)
+
+EXIT_USAGE = 2  # bad flags, unusable Zenoh configuration
+EXIT_NOT_FINISHED = 1  # --until-finished, but --timeout-s came first
+DEFAULT_WATCH = WatchConfig()
+FINAL_STATES = ("finished", "failed")
+WIDE_ASPECT = 1.5  # layout, not tunables: maps wider than this stack their panels
+WIDE_PANEL_SCALE = 2.0  # stacked panels of wide maps get twice the width
+PANEL_TITLE_INCHES = 0.3
+TITLE_INCHES = 0.6
+
+# topic -> (expected message type, WatchState field)
+WATCHED_TOPICS: dict[str, tuple[type[Message], str]] = {
+    "observed_map": (MapMessage, "observed"),
+    "prediction/mean": (MapMessage, "mean"),
+    "prediction/variance": (MapMessage, "variance"),
+    "pose": (PoseMessage, "pose"),
+    "frontiers": (FrontiersMessage, "frontiers"),
+    "goal": (GoalMessage, "goal"),
+    "path": (PathMessage, "path"),
+    "status": (StatusMessage, "status"),
+    "metrics": (MetricsMessage, "metrics"),
+}
+MAP_KINDS_BY_TOPIC = {
+    "observed_map": "observed",
+    "prediction/mean": "mean",
+    "prediction/variance": "variance",
+}
+
+Ended = Literal["stopped", "finished", "timeout"]
+
+log = logging.getLogger("services.watch")
+
+
+# ---------------------------------------------------------------------------- state and decoding
+
+
+@dataclass
+class WatchState:
+    """The latest message of each watched topic of one robot (None: not heard of yet)."""
+
+    run: str
+    robot: str
+    observed: MapMessage | None = None
+    mean: MapMessage | None = None
+    variance: MapMessage | None = None
+    pose: PoseMessage | None = None
+    frontiers: FrontiersMessage | None = None
+    goal: GoalMessage | None = None
+    path: PathMessage | None = None
+    status: StatusMessage | None = None
+    metrics: MetricsMessage | None = None
+    received: dict[str, int] = field(default_factory=dict)  # messages applied, by topic
+
+    def apply(self, topic: str, message: Message) -> None:
+        """Make `message` (decoded by `decode_topic`) the latest of `topic`."""
+        setattr(self, WATCHED_TOPICS[topic][1], message)
+        self.received[topic] = self.received.get(topic, 0) + 1
+
+    @property
+    def finished(self) -> bool:
+        """Whether the run's status says it finished or failed."""
+        return self.status is not None and self.status.state in FINAL_STATES
+
+    @property
+    def t(self) -> int | None:
+        """The latest step any received message is about."""
+        steps = [m.t for m in self._messages() if m is not None]
+        return max(steps) if steps else None
+
+    def _messages(self) -> list[Message | None]:
+        return [getattr(self, name) for _, name in WATCHED_TOPICS.values()]
+
+
+def decode_topic(topic: str, payload: Payload) -> Message:
+    """The message of a payload received on `topic`; ProtocolError when it is not the right one."""
+    expected, _ = WATCHED_TOPICS[topic]
+    message = decode_message(payload, (expected,))
+    kind = MAP_KINDS_BY_TOPIC.get(topic)
+    if kind is not None and message.kind != kind:
+        raise ProtocolError(f"a map of kind {message.kind!r} on {topic}, expected {kind!r}")
+    return message
+
+
+def apply_payloads(state: WatchState, payloads: dict[str, bytes], keys: dict[str, str]) -> bool:
+    """Decode and apply each topic's payload; log and drop malformed ones. True if any applied."""
+    applied = False
+    for topic, payload in payloads.items():
+        try:
+            message = decode_topic(topic, payload)
+        except ProtocolError as error:
+            log.warning("dropped a malformed message on %s: %s", keys[topic], error)
+            continue
+        state.apply(topic, message)
+        applied = True
+    return applied
+
+
+# ---------------------------------------------------------------------------- rendering (pure)
+
+
+def render_figure(state: WatchState, config: WatchConfig = DEFAULT_WATCH) -> Figure:
+    """A figure of the observed map (pose, path, frontiers, goal on top), mean and variance."""
+    rows, cols = _map_shape(state)
+    wide = cols > WIDE_ASPECT * rows  # wide maps stack their panels, others sit side by side
+    panel_w = config.panel_inches * (WIDE_PANEL_SCALE if wide else 1.0)
+    panel_h = panel_w * rows / cols + PANEL_TITLE_INCHES
+    size = (panel_w, 3 * panel_h) if wide else (3 * panel_w, panel_h)
+    figure = Figure(figsize=(size[0], size[1] + TITLE_INCHES))
+    axes = figure.subplots(*((3, 1) if wide else (1, 3)), squeeze=False).ravel()
+    _draw_observed(axes[0], state)
+    _draw_map(axes[1], state.mean, "prediction mean", occupancy_image, "gray", 1.0)
+    _draw_map(axes[2], state.variance, "variance", None, "magma", None)
+    figure.suptitle(_title(state), fontsize=10)
+    figure.tight_layout(rect=(0, 0, 1, 1 - TITLE_INCHES / figure.get_figheight()))
+    return figure
+
+
+def render_frame(state: WatchState, config: WatchConfig = DEFAULT_WATCH) -> bytes:
+    """The PNG bytes of `render_figure(state)`."""
+    buffer = io.BytesIO()
+    render_figure(state, config).savefig(buffer, format="png", dpi=config.dpi)
+    return buffer.getvalue()
+
+
+def _map_shape(state: WatchState) -> tuple[int, int]:
+    for message in (state.observed, state.mean, state.variance):
+        if message is not None:
+            return message.map_u8.shape
+    return 1, 1
+
+
+def _title(state: WatchState) -> str:
+    """Two lines: run, robot and step; then metrics and status when known."""
+    head = f"run {state.run} / {state.robot}   t = {'?' if state.t is None else state.t}"
+    facts = []
+    if state.metrics is not None:
+        facts.append(f"coverage {state.metrics.coverage:.1%}   IoU {state.metrics.iou:.3f}")
+        if state.metrics.degraded:
+            facts.append("degraded")
+    if state.status is not None:
+        detail = f": {state.status.detail}" if state.status.detail else ""
+        facts.append(state.status.state + detail)
+    return head + "\n" + "   ".join(facts)
+
+
+def _draw_observed(ax: Axes, state: WatchState) -> None:
+    _draw_map(ax, state.observed, "observed map", occupancy_image, "gray", 1.0)
+    if state.observed is None:
+        return
+    if state.path is not None and len(state.path.cells):
+        ax.plot(state.path.cells[:, 1], state.path.cells[:, 0], color="tab:red", linewidth=1.0)
+    if state.frontiers is not None and len(state.frontiers.cells):
+        cells = state.frontiers.cells
+        ax.scatter(cells[:, 1], cells[:, 0], s=4, color="tab:cyan", linewidths=0)
+    if state.goal is not None and state.goal.goal is not None:
+        ax.plot(state.goal.goal[1], state.goal.goal[0], "*", color="tab:orange", markersize=10)
+    if state.pose is not None:
+        ax.plot(state.pose.pose[1], state.pose.pose[0], "o", color="tab:blue", markersize=6)
+    rows, cols = state.observed.map_u8.shape
+    ax.set_xlim(-0.5, cols - 0.5)  # overlays never rescale the map
+    ax.set_ylim(rows - 0.5, -0.5)
+
+
+def _draw_map(ax: Axes, message, name: str, to_image, cmap: str, vmax: float | None) -> None:
+    """A map panel, or a note that the map has not arrived yet."""
+    ax.set_xticks([])
+    ax.set_yticks([])
+    if message is None:
+        ax.set_title(f"{name}: waiting", fontsize=9)
+        return
+    values = message.probabilities()
+    image = to_image(values) if to_image is not None else values
+    top = vmax if vmax is not None else max(float(values.max()), 1e-6)
+    ax.imshow(image, cmap=cmap, vmin=0.0, vmax=top, interpolation="nearest")
+    scale = "" if vmax is not None else f", max {top:.3f}"
+    ax.set_title(f"{name} (t = {message.t}{scale})", fontsize=9)
+
+
+# ---------------------------------------------------------------------------- outputs
+
+
+class FrameReel:
+    """Downscaled GIF frames, fewer than `max_frames`: at the cap every other frame is dropped
+    (the newest kept) and from then on only every other new one is kept (spacing doubles)."""
+
+    def __init__(self, max_frames: int, max_side_px: int) -> None:
+        self.max_frames = max(2, max_frames)
+        self.max_side_px = max_side_px
+        self.frames: list[Image.Image] = []
+        self.stride = 1
+        self._since_kept = 0
+
+    def add(self, png: bytes, force: bool = False) -> None:
+        """Offer a rendered PNG; `force` keeps it whatever the stride (e.g. the last frame)."""
+        self._since_kept += 1
+        if self._since_kept < self.stride and not force:
+            return
+        self._since_kept = 0
+        self.frames.append(self._small(png))
+        if len(self.frames) >= self.max_frames:
+            self.frames = self.frames[::-2][::-1]
+            self.stride *= 2
+
+    def gif_bytes(self, frame_ms: int) -> bytes:
+        """The frames as an endlessly looping animated GIF (sized like the first frame)."""
+        if not self.frames:
+            raise ValueError("no frames to write")
+        first = self.frames[0]
+        rest = [f if f.size == first.size else f.resize(first.size) for f in self.frames[1:]]
+        buffer = io.BytesIO()
+        first.save(
+            buffer, format="GIF", save_all=True, append_images=rest, duration=frame_ms, loop=0
+        )
+        return buffer.getvalue()
+
+    def _small(self, png: bytes) -> Image.Image:
+        with Image.open(io.BytesIO(png)) as image:
+            frame = image.convert("RGB")
+        frame.thumbnail((self.max_side_px, self.max_side_px))
+        return frame.convert("P", palette=Image.Palette.ADAPTIVE)
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write `data` to `path` through a temporary file and os.replace (readers never see half)."""
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        temporary.write_bytes(data)
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
+class FrameOutputs:
+    """Where rendered frames go: the PNG (each one) and, with a GIF path, the reel."""
+
+    def __init__(self, png: Path, gif: Path | None, config: WatchConfig) -> None:
+        self.png, self.gif, self.config = png, gif, config
+        self.reel = FrameReel(config.max_gif_frames, config.gif_max_side_px) if gif else None
+        self.rendered = 0
+
+    def render(self, state: WatchState, final: bool = False) -> None:
+        """Render `state`, rewrite the PNG, keep the frame for the GIF."""
+        png = render_frame(state, self.config)
+        try:
+            write_atomic(self.png, png)
+        except OSError as error:
+            log.warning("could not write %s: %s", self.png, error)
+        if self.reel is not None:
+            self.reel.add(png, force=final)
+        self.rendered += 1
+
+    def close(self) -> None:
+        """Write the GIF, if one was asked for and any frame was rendered."""
+        if self.reel is None or self.gif is None:
+            return
+        if not self.reel.frames:
+            log.warning("no frame was rendered: %s not written", self.gif)
+            return
+        try:
+            write_atomic(self.gif, self.reel.gif_bytes(self.config.gif_frame_ms))
+        except OSError as error:
+            log.error("could not write %s: %s", self.gif, error)
+            return
+        log.info("wrote %s (%d frames)", self.gif, len(self.reel.frames))
+
+
+# ---------------------------------------------------------------------------- Zenoh glue
+
+
+class Inbox:
+    """The latest raw payload per topic, filled on Zenoh's threads, drained by the main loop."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._pending: dict[str, bytes] = {}
+        self._heard: set[str] = set()
+
+    def deliver(self, topic: str, payload: bytes) -> None:
+        """A live sample: it replaces whatever is pending for `topic`."""
+        with self._lock:
+            self._pending[topic] = payload
+            self._heard.add(topic)
+
+    def offer(self, topic: str, payload: bytes) -> None:
+        """A late-joiner reply: taken only if no live sample of `topic` came first (newer)."""
+        with self._lock:
+            if topic not in self._heard:
+                self._pending[topic] = payload
+                self._heard.add(topic)
+
+    def drain(self) -> dict[str, bytes]:
+        """The pending payloads, emptying the inbox."""
+        with self._lock:
+            pending, self._pending = self._pending, {}
+        return pending
+
+    def unheard(self) -> list[str]:
+        """The watched topics nothing has arrived on yet."""
+        with self._lock:
+            return [topic for topic in WATCHED_TOPICS if topic not in self._heard]
+
+
+class Watcher:
+    """Subscribers on one robot's watched keys feeding an `Inbox`, and late-joiner queries."""
+
+    def __init__(self, session: zenoh.Session, run: str, robot: str, config: WatchConfig) -> None:
+        self.session, self.config = session, config
+        self.keys = {topic: robot_key(run, robot, topic) for topic in WATCHED_TOPICS}
+        self.inbox = Inbox()
+        # subscribe first, then ask: nothing put in between is missed
+        self.subscribers = [
+            session.declare_subscriber(key, self._on_sample(topic))
+            for topic, key in self.keys.items()
+        ]
+        self._next_ask_s = 0.0
+        self.ask_unheard(time.monotonic())
+
+    def ask_unheard(self, now_s: float) -> None:
+        """`get` the topics nothing has arrived on, at most once per `get_timeout_s`."""
+        if now_s < self._next_ask_s:
+            return
+        self._next_ask_s = now_s + self.config.get_timeout_s
+        for topic in self.inbox.unheard():
+            self.session.get(
+                self.keys[topic], self._on_reply(topic), timeout=self.config.get_timeout_s
+            )
+
+    def close(self) -> None:
+        """Undeclare the subscribers (replies still in flight are dropped with the session)."""
+        for subscriber in self.subscribers:
+            subscriber.undeclare()
+
+    def _on_sample(self, topic: str):
+        return lambda sample: self.inbox.deliver(topic, sample.payload.to_bytes())
+
+    def _on_reply(self, topic: str):
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                self.inbox.offer(topic, reply.ok.payload.to_bytes())
+            else:
+                log.warning("query on %s got an error reply", self.keys[topic])
+
+        return on_reply
+
+
+@dataclass(frozen=True)
+class WatchSummary:
+    """How a watch ended and how many frames it rendered."""
+
+    ended: Ended
+    frames: int
+
+
+def main(
+    config: zenoh.Config,
+    run: str,
+    robot: str = "r0",
+    png: Path = Path("watch.png"),
+    gif: Path | None = None,
+    every_s: float | None = None,
+    until_finished: bool = False,
+    timeout_s: float | None = None,
+    stop: threading.Event | None = None,
+    watch: WatchConfig = DEFAULT_WATCH,
+) -> WatchSummary:
+    """Watch robot `robot` of `run` until `stop`, the run's end (`until_finished`) or `timeout_s`.
+
+    Raises ZenohConfigError when the session is refused.
+    """
+    deadline_s = None if timeout_s is None else time.monotonic() + timeout_s
+    outputs = FrameOutputs(Path(png), None if gif is None else Path(gif), watch)
+    session = open_session(config)
+    try:
+        watcher = Watcher(session, run, robot, watch)
+        log.info("watching run %s robot %s into %s", run, robot, png)
+        try:
+            state = WatchState(run, robot)
+            ended = _loop(
+                watcher,
+                state,
+                outputs,
+                stop or threading.Event(),
+                deadline_s,
+                every_s or watch.every_s,
+                until_finished,
+            )
+        finally:
+            watcher.close()
+    finally:
+        session.close()
+        outputs.close()
+    received = ", ".join(f"{topic} {n}" for topic, n in sorted(state.received.items()))
+    log.info("stopped (%s) after %d frames; received %s", ended, outputs.rendered, received)
+    return WatchSummary(ended, outputs.rendered)
+
+
+def _loop(
+    watcher: Watcher,
+    state: WatchState,
+    outputs: FrameOutputs,
+    stop: threading.Event,
+    deadline_s: float | None,
+    every_s: float,
+    until_finished: bool,
+) -> Ended:
+    """Apply arrivals, render at most every `every_s`; return why the watch ended."""
+    next_render_s, dirty = time.monotonic(), False
+    while True:
+        dirty |= apply_payloads(state, watcher.inbox.drain(), watcher.keys)
+        now_s = time.monotonic()
+        ended = _ended(stop, state, until_finished, deadline_s, now_s)
+        if ended is not None:
+            break
+        if dirty and now_s >= next_render_s:
+            outputs.render(state)
+            dirty, next_render_s = False, now_s + every_s
+        watcher.ask_unheard(now_s)
+        stop.wait(watcher.config.poll_s)
+    if dirty:
+        outputs.render(state, final=True)
+    return ended
+
+
+def _ended(
+    stop: threading.Event,
+    state: WatchState,
+    until_finished: bool,
+    deadline_s: float | None,
+    now_s: float,
+) -> Ended | None:
+    if stop.is_set():
+        return "stopped"
+    if until_finished and state.finished:
+        return "finished"
+    if deadline_s is not None and now_s >= deadline_s:
+        return "timeout"
+    return None
+
+
+# ---------------------------------------------------------------------------- command line
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line flags: run, robot, outputs, timing and Zenoh's."""
+    parser = argparse.ArgumentParser(
+        prog="python -m services.watch", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument("--run", required=True, help="run id, the <run> chunk of the keys")
+    parser.add_argument("--robot", default="r0", help="robot id to watch (default: %(default)s)")
+    parser.add_argument(
+        "--png",
+        type=Path,
+        default=Path("watch.png"),
+        help="PNG rewritten with each frame (default: %(default)s)",
+    )
+    parser.add_argument("--gif", type=Path, default=None, help="write an animated GIF on exit")
+    parser.add_argument(
+        "--every-s",
+        type=_positive_seconds,
+        default=DEFAULT_WATCH.every_s,
+        help="render at most this often, in seconds (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--until-finished",
+        action="store_true",
+        help="exit when the run's status says finished or failed",
+    )
+    parser.add_argument(
+        "--timeout-s",
+        type=_positive_seconds,
+        default=None,
+        help="stop after this many seconds (exit 1 if --until-finished and not finished)",
+    )
+    add_zenoh_arguments(parser)
+    return parser
+
+
+def run_cli(argv: list[str] | None = None) -> int:
+    """Parse flags, watch; 0 on a clean stop, 1 on --until-finished timing out, 2 on bad flags."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _check_flags(parser, args)
+    configure_logging(f"watch[{args.run}/{args.robot}]")
+    stop = stop_on_signals()
+    try:
+        config = zenoh_config_from_args(args)
+        summary = main(
+            config,
+            args.run,
+            args.robot,
+            args.png,
+            args.gif,
+            args.every_s,
+            args.until_finished,
+            args.timeout_s,
+            stop,
+        )
+    except ZenohConfigError as error:
+        log.error("%s", error)
+        return EXIT_USAGE
+    if summary.ended == "timeout" and args.until_finished:
+        log.error("timed out after %s s before run %s finished", args.timeout_s, args.run)
+        return EXIT_NOT_FINISHED
+    return 0
+
+
+def _positive_seconds(text: str) -> float:
+    """argparse type of a duration: a finite number of seconds above 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (np.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
+    return value
+
+
+def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """argparse-style one-line errors (exit 2) for flag values argparse cannot check itself."""
+    if not is_valid_id(args.run) or args.run in RESERVED_RUN_IDS:
+        parser.error(
+            f"--run {args.run!r} must match [a-z0-9_-]{{1,{ID_MAX_CHARS}}} "
+            f"and not be {' or '.join(sorted(RESERVED_RUN_IDS))}"
+        )
+    if not is_valid_id(args.robot):
+        parser.error(f"--robot {args.robot!r} must match [a-z0-9_-]{{1,{ID_MAX_CHARS}}}")
+    for flag, path in (("--png", args.png), ("--gif", args.gif)):
+        if path is not None and not path.parent.resolve().is_dir():
+            parser.error(f"{flag} {str(path)!r}: directory {str(path.parent)!r} does not exist")
+        if path is not None and path.is_dir():
+            parser.error(f"{flag} {str(path)!r} is a directory")
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli())

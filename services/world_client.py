@@ -1,0 +1,113 @@
+"""The planner's side of the world process: a `mapex.episode.StepSource` over Zenoh.
+
+A step is a query on `mapex/@v1/<run>/<robot>/step` carrying the robot's sequence number;
+a query that gets no reply is sent again with the same number (the world answers a repeat
+with its cached reply and does not move the robot twice). The world's name, size and ground
+truth come from its `world_info` and `ground_truth` queryables, asked until they answer.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import zenoh
+
+from mapex.config import ServicesConfig
+from mapex.sensor import Scan
+from mapex.worlds.base import World
+from services.codec import DEFAULT_SERVICES, ProtocolError
+from services.keys import robot_id, robot_key, run_key
+from services.messages import (
+    ErrorReply,
+    GroundTruth,
+    Message,
+    ScanReply,
+    StepRequest,
+    WorldInfo,
+    decode_message,
+)
+
+_RETRY_PAUSE_S = 0.2  # between start-up queries for the world's keys
+
+log = logging.getLogger("services.world_client")
+
+
+class WorldUnavailableError(RuntimeError):
+    """The world process did not answer (in time, or at all); the message is one line."""
+
+
+class StepRefusedError(RuntimeError):
+    """The world refused a step (bad motion, out-of-order seq); the message is one line."""
+
+
+class ZenohWorld:
+    """Robots of one run, moved and scanned by the world process reachable through `session`."""
+
+    def __init__(
+        self, session: zenoh.Session, run: str, services: ServicesConfig = DEFAULT_SERVICES
+    ) -> None:
+        self.session = session
+        self.run = run
+        self.services = services
+        self._next_seq: dict[int, int] = {}
+
+    def fetch(self, timeout_s: float | None = None) -> tuple[WorldInfo, World]:
+        """The world's info and its ground truth as a `World`, waiting for the world to serve."""
+        timeout_s = self.services.world_wait_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout_s
+        info = self._wait_for(run_key(self.run, "world_info"), WorldInfo, deadline)
+        truth = self._wait_for(run_key(self.run, "ground_truth"), GroundTruth, deadline)
+        if truth.occupancy.shape != info.shape:
+            raise WorldUnavailableError(
+                f"run {self.run}: ground truth {truth.occupancy.shape} != world size {info.shape}"
+            )
+        return info, truth.to_world(info.name, info.resolution_m)
+
+    def scan(self, robot: int) -> Scan:
+        """The initial scan of robot `robot` where it stands (step seq 0)."""
+        self._next_seq[robot] = 0
+        return self._step(robot, np.zeros((0, 2), dtype=np.int32))
+
+    def step(self, robot: int, cells: np.ndarray) -> Scan:
+        """Drive robot `robot` through `cells` and return the scan at its new pose."""
+        return self._step(robot, np.asarray(cells, dtype=np.int32).reshape(-1, 2))
+
+    def _step(self, robot: int, cells: np.ndarray) -> Scan:
+        seq = self._next_seq.get(robot, 0)
+        key = robot_key(self.run, robot_id(robot), "step")
+        payload = StepRequest(seq, cells).encode(self.services)
+        for attempt in range(1, self.services.step_retries + 1):
+            message = self._ask(key, payload, (ScanReply, ErrorReply), self.services.step_timeout_s)
+            if isinstance(message, ErrorReply):
+                raise StepRefusedError(f"{key}: {message.message}")
+            if message is not None:
+                self._next_seq[robot] = seq + 1
+                return message.to_scan()
+            log.warning("%s: no reply to step %d (attempt %d), retrying", key, seq, attempt)
+        raise WorldUnavailableError(
+            f"{key}: the world did not answer step {seq} "
+            f"({self.services.step_retries} attempts of {self.services.step_timeout_s:g} s)"
+        )
+
+    def _wait_for(self, key: str, kind: type[Message], deadline: float) -> Message:
+        while True:
+            message = self._ask(key, b"", (kind,), timeout_s=1.0)
+            if message is not None:
+                return message
+            if time.monotonic() >= deadline:
+                raise WorldUnavailableError(f"no world serves run {self.run!r} ({key})")
+            time.sleep(_RETRY_PAUSE_S)
+
+    def _ask(
+        self, key: str, payload: bytes, kinds: tuple[type[Message], ...], timeout_s: float
+    ) -> Message | None:
+        """The first decodable reply of the expected kinds to one query, or None."""
+        for reply in self.session.get(key, payload=payload or None, timeout=timeout_s):
+            sample = reply.ok if reply.ok is not None else reply.err
+            try:
+                return decode_message(sample.payload.to_bytes(), kinds, self.services)
+            except ProtocolError as error:
+                log.warning("%s: dropped a reply: %s", key, error)
+        return None

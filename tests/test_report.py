@@ -1,0 +1,289 @@
+"""The evaluation report: AUC table, relative improvements, figures and the command line,
+on small synthetic results folders written in the format of mapex.results."""
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mapex.config import ReportConfig
+from mapex.grid import FREE, OCCUPIED, UNKNOWN
+from mapex.methods import ABLATIONS, MAIN_COMPARISON
+from mapex.report import (
+    auc_table,
+    choose_snapshot_runs,
+    load_runs,
+    load_snapshots,
+    main,
+    mean_curve,
+    order_methods,
+    plot_snapshots,
+    relative_improvement,
+    relative_improvements,
+    write_report,
+)
+
+SHAPE = (12, 18)
+
+
+def write_run(
+    root,
+    world,
+    method,
+    start=0,
+    seed=0,
+    cov=0.5,
+    iou=0.4,
+    tu=0.3,
+    steps=200,
+    early=False,
+    degraded=None,
+    snapshots=True,
+    prediction=True,
+):
+    """A finished run folder whose curves are constant at the given AUCs (so curve means and
+    metrics.json agree); snapshots at 100 and 200 of a small map."""
+    name = f"{world.replace(':', '_')}-{method}-start{start}-seed{seed}"
+    folder = root / name
+    folder.mkdir(parents=True)
+    metrics = {
+        "world": world,
+        "method": method,
+        "predictor": "classical",
+        "start_index": start,
+        "seed": seed,
+        "steps": steps,
+        "finished_at": 150 if early else None,
+        "early_termination": early,
+        "auc": {"coverage": cov, "iou": iou, "tu": tu},
+        "final": {"coverage": cov, "iou": iou, "tu": tu},
+        "replans": 3,
+        "wall_time_s": 1.0,
+        "config": {},
+    }
+    if degraded is not None:
+        metrics["degraded_steps"] = degraded
+    (folder / "metrics.json").write_text(json.dumps(metrics))
+    lines = ["step,coverage,iou,tu"]
+    for t in range(0, steps + 1, 50):
+        lines.append(f"{t},{cov:.6f},{iou:.6f},{f'{tu:.6f}' if t % 100 == 0 else ''}")
+    (folder / "curves.csv").write_text("\n".join(lines) + "\n")
+    if snapshots:
+        observed = np.full((2, *SHAPE), UNKNOWN, dtype=np.uint8)
+        observed[:, 2:6, 2:8] = FREE
+        observed[:, 1, :] = OCCUPIED
+        arrays = {"steps": np.array([100, 200], dtype=np.int64), "observed": observed}
+        if prediction:
+            arrays["prediction"] = np.full((2, *SHAPE), 40, dtype=np.uint8)
+        np.savez_compressed(folder / "snapshots.npz", **arrays)
+    return folder
+
+
+@pytest.fixture
+def results(tmp_path):
+    """Two worlds, two starts; MapEx, Nearest (no predictor snapshot) and UPEN."""
+    root = tmp_path / "results"
+    write_run(root, "generated:1", "mapex", 0, cov=0.6, iou=0.5, tu=0.4)
+    write_run(root, "generated:1", "mapex", 1, cov=0.8, iou=0.7, tu=0.6, degraded=[5, 6])
+    write_run(root, "generated:2", "mapex", 0, cov=0.7, iou=0.3, tu=0.5)
+    write_run(root, "generated:1", "nearest", 0, cov=0.5, iou=0.4, tu=0.5, prediction=False)
+    write_run(root, "generated:1", "nearest", 1, cov=0.4, iou=0.4, tu=0.3, early=True)
+    write_run(root, "generated:2", "nearest", 0, cov=0.6, iou=0.4, tu=0.4, degraded=[])
+    write_run(root, "generated:1", "upen", 1, cov=0.7, iou=0.5, tu=0.0)
+    return root
+
+
+def test_auc_table_means_and_standard_errors(results):
+    table = auc_table(load_runs(results))
+    assert table.methods == ("nearest", "upen", "mapex")
+    mapex = table.row("mapex")
+    assert (mapex.runs, mapex.early_terminations, mapex.degraded_runs) == (3, 0, 1)
+    # coverage 0.6, 0.8, 0.7: mean 0.7, sd 0.1, SE 0.1 / sqrt(3)
+    assert mapex.auc["coverage"].mean == pytest.approx(0.7)
+    assert mapex.auc["coverage"].se == pytest.approx(0.1 / math.sqrt(3))
+    assert mapex.auc["iou"].mean == pytest.approx(0.5)
+    assert mapex.auc["iou"].se == pytest.approx(0.2 / math.sqrt(3))
+    nearest = table.row("nearest")
+    assert (nearest.runs, nearest.early_terminations, nearest.degraded_runs) == (3, 1, 0)
+    assert nearest.auc["coverage"].mean == pytest.approx(0.5)
+    assert nearest.auc["tu"].se == pytest.approx(0.1 / math.sqrt(3))
+    upen = table.row("upen")
+    assert upen.auc["coverage"].n == 1 and math.isnan(upen.auc["coverage"].se)
+    # per world: generated:1 mapex = starts 0 and 1 only, SE of two values = half their gap
+    world = {r.method: r for r in table.by_world["generated:1"]}
+    assert world["mapex"].auc["coverage"].mean == pytest.approx(0.7)
+    assert world["mapex"].auc["coverage"].se == pytest.approx(0.1)
+    assert [r.method for r in table.by_world["generated:2"]] == ["nearest", "mapex"]
+
+
+def test_relative_improvement_formula(results):
+    assert relative_improvement(0.6, 0.5) == pytest.approx(20.0)
+    assert relative_improvement(0.4, 0.5) == pytest.approx(-20.0)
+    assert math.isnan(relative_improvement(0.5, 0.0))
+    improvements = relative_improvements(auc_table(load_runs(results)))
+    assert list(improvements) == ["nearest", "upen"]
+    nearest = improvements["nearest"]
+    assert nearest["coverage"] == pytest.approx((0.7 - 0.5) / 0.5 * 100)
+    assert nearest["iou"] == pytest.approx((0.5 - 0.4) / 0.4 * 100)
+    assert nearest["tu"] == pytest.approx((0.5 - 0.4) / 0.4 * 100)
+    assert nearest["mean"] == pytest.approx((40 + 25 + 25) / 3)
+    upen = improvements["upen"]  # TU AUC 0: no ratio, left out of the mean
+    assert math.isnan(upen["tu"])
+    assert upen["mean"] == pytest.approx(np.mean([0.0, 0.0]))
+    assert relative_improvements(auc_table(load_runs(results)), reference="absent") == {}
+
+
+def test_staging_and_broken_folders(results, capsys):
+    write_run(results / ".staging", "generated:9", "mapex")  # lives at .staging/<run>
+    staged = write_run(results, "generated:9", "mapex", start=3)
+    staged.rename(results / ".generated_9-mapex-start3-seed0.abc")
+    broken = results / "broken-run"
+    broken.mkdir()
+    (broken / "metrics.json").write_text("{not json")
+    runs = load_runs(results)
+    assert len(runs) == 7 and "generated:9" not in {r.world for r in runs}
+    warnings = capsys.readouterr().err.strip().splitlines()
+    assert len(warnings) == 1 and "broken-run" in warnings[0]
+
+
+def test_method_order():
+    order = ReportConfig().method_order
+    assert order == MAIN_COMPARISON + ABLATIONS
+    assert order[:4] == ("nearest", "upen", "ig_hector", "mapex")
+    assert order[4:] == ("deterministic", "no_variance", "observed_map", "no_visibility")
+    shuffled = ["zeta", "no_visibility", "mapex", "alpha", "deterministic", "nearest", "upen"]
+    assert order_methods(shuffled, order) == [
+        "nearest",
+        "upen",
+        "mapex",
+        "deterministic",
+        "no_visibility",
+        "alpha",
+        "zeta",
+    ]
+
+
+def test_mean_curve_with_bands(tmp_path):
+    write_run(tmp_path, "w", "mapex", 0, cov=0.2, tu=0.1)
+    write_run(tmp_path, "w", "mapex", 1, cov=0.4, tu=0.5, steps=100)
+    runs = load_runs(tmp_path)
+    coverage = mean_curve(runs, "coverage")
+    assert coverage.steps.tolist() == [0, 50, 100, 150, 200]
+    np.testing.assert_allclose(coverage.mean, [0.3, 0.3, 0.3, 0.2, 0.2])
+    np.testing.assert_allclose(coverage.se[:3], 0.1)
+    assert np.isnan(coverage.se[3:]).all()  # one run only past step 100
+    tu = mean_curve(runs, "tu")
+    assert tu.steps.tolist() == [0, 100, 200]
+    np.testing.assert_allclose(tu.mean, [0.3, 0.3, 0.1])
+
+
+def test_snapshot_runs_share_world_and_start(tmp_path):
+    write_run(tmp_path, "a", "mapex", 0)
+    write_run(tmp_path, "a", "nearest", 0)
+    write_run(tmp_path, "b", "nearest", 2)
+    write_run(tmp_path, "b", "mapex", 2, seed=1)
+    write_run(tmp_path, "b", "mapex", 2, seed=0)
+    write_run(tmp_path, "b", "upen", 2)
+    write_run(tmp_path, "b", "upen", 3, snapshots=False)
+    runs = load_runs(tmp_path)
+    chosen = choose_snapshot_runs(runs, ReportConfig().method_order)
+    assert [(r.method, r.world, r.start_index, r.seed) for r in chosen] == [
+        ("nearest", "b", 2, 0),
+        ("upen", "b", 2, 0),
+        ("mapex", "b", 2, 0),
+    ]
+    pick = next(r for r in runs if r.world == "a")
+    picked = choose_snapshot_runs(runs, ReportConfig().method_order, pick)
+    assert [(r.method, r.world) for r in picked] == [("nearest", "a"), ("mapex", "a")]
+
+
+def is_png(path):
+    return path.is_file() and path.stat().st_size > 100 and path.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_write_report_files_and_numbers(results, tmp_path):
+    runs = load_runs(results)
+    files, summary = write_report(runs, tmp_path / "out", warn=lambda m: None)
+    names = sorted(p.name for p in files.figures)
+    assert names == ["curves-generated_1.png", "curves-generated_2.png", "curves.png"] + [
+        "snapshots.png"
+    ]
+    assert all(is_png(p) for p in files.figures)
+    data = json.loads(files.json.read_text())
+    assert list(data["methods"]) == ["nearest", "upen", "mapex"]
+    assert data["methods"]["mapex"]["auc"]["coverage"]["mean"] == pytest.approx(0.7)
+    assert data["methods"]["upen"]["auc"]["coverage"]["se"] is None
+    assert data["improvements"]["over"]["nearest"]["coverage"] == pytest.approx(40.0)
+    assert data["run_counts"]["generated:1"] == {"nearest": 2, "upen": 1, "mapex": 2}
+    assert data["run_counts"]["generated:2"]["upen"] == 0
+    assert data["by_world"]["generated:2"]["mapex"]["runs"] == 1
+    assert data["snapshot_steps"] == [200]  # 500 and 1000 not reached by any run
+    assert data["snapshot_runs"][0].startswith(
+        "generated_1-nearest-start1"
+    )  # upen has start 1 only
+    markdown = files.markdown.read_text()
+    assert "| mapex | 3 | 0 | 1 | 0.700 ± 0.058 |" in markdown
+    assert "| nearest | +40.0 % | +25.0 % | +25.0 % | +30.0 % |" in markdown
+    assert "| generated:1 | 2 | 1 | 2 | 5 |" in markdown
+    assert markdown.index("| nearest |") < markdown.index("| upen |") < markdown.index("| mapex")
+    assert "0.700 ± 0.058" in summary and "+40.0 %" in summary
+
+
+def test_mixed_budgets_are_flagged(tmp_path):
+    write_run(tmp_path / "r", "w", "mapex", 0, steps=200)
+    write_run(tmp_path / "r", "w", "nearest", 0, steps=100)
+    notes = []
+    files, _ = write_report(load_runs(tmp_path / "r"), tmp_path / "out", warn=notes.append)
+    assert any("time budgets" in n for n in notes)
+    assert "time budgets" in files.markdown.read_text()
+
+
+def test_cli_writes_report_to_default_folder(results, capsys):
+    assert main([str(results), "--snapshot-run", "generated_2-mapex-start0-seed0"]) == 0
+    out = results / "report"
+    assert (out / "report.md").is_file() and is_png(out / "snapshots.png")
+    data = json.loads((out / "report.json").read_text())
+    assert [name.split("-")[0] for name in data["snapshot_runs"]] == ["generated_2"] * 2
+    stdout = capsys.readouterr().out
+    assert "| method | runs |" in stdout and "report.md" in stdout
+    assert main([str(results)]) == 0  # the report folder itself is not read as a run
+    assert "skipping" not in capsys.readouterr().err
+
+
+def run_cli(*args):
+    return subprocess.run(
+        [sys.executable, "-m", "mapex.report", *args], capture_output=True, text=True, timeout=120
+    )
+
+
+def test_cli_errors(tmp_path, capsys):
+    empty = tmp_path / "empty"
+    (empty / ".staging-run").mkdir(parents=True)
+    assert main([str(empty)]) == 2
+    assert "no finished runs" in capsys.readouterr().err
+    write_run(tmp_path / "r", "w", "mapex")
+    assert main([str(tmp_path / "r"), "--snapshot-run", "nosuch"]) == 2
+    assert "nosuch" in capsys.readouterr().err
+    done = run_cli(str(tmp_path / "missing"))
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "missing" in lines[0] and "does not exist" in lines[0]
+
+
+def test_cli_help():
+    done = run_cli("--help")
+    assert done.returncode == 0 and "RESULTS_DIR" in done.stdout and "--snapshot-run" in done.stdout
+
+
+def test_snapshots_without_prediction_or_file(tmp_path):
+    write_run(tmp_path / "r", "w", "nearest", prediction=False)
+    write_run(tmp_path / "r", "w", "mapex")
+    runs = load_runs(tmp_path / "r")
+    pairs = [(runs[0], None), (runs[1], load_snapshots(runs[1]))]
+    assert pairs[1][1].prediction is None and pairs[1][1].at(200) is not None
+    assert pairs[1][1].at(500) is None
+    steps = plot_snapshots(tmp_path / "s.png", pairs, ReportConfig(snapshot_steps=(100, 300)))
+    assert steps == (100,) and is_png(tmp_path / "s.png")

@@ -1,0 +1,106 @@
+"""Batch evaluation: episode planning, atomic resumable results, a killed-and-resumed run."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from service_processes import REPO_ROOT, free_loopback_port, until
+from up_processes import pid_alive
+
+from services.evaluate import Episode, finished, plan_episodes, remove_staging
+
+SMALL = ["--maps", "generated:0", "--methods", "nearest,mapex", "--starts", "0,1",
+         "--steps", "60"]  # fmt: skip
+
+
+def evaluate(out, *extra: str, log=None) -> subprocess.Popen:
+    command = [
+        sys.executable, "-m", "services.evaluate", *SMALL, "--out", str(out), "--no-progress",
+        "--listen", f"tcp/127.0.0.1:{free_loopback_port()}", *extra,
+    ]  # fmt: skip
+    return subprocess.Popen(
+        command, cwd=REPO_ROOT, stdout=log or subprocess.DEVNULL, stderr=log or subprocess.STDOUT
+    )
+
+
+def run_table(out) -> dict:
+    """Each finished run's AUCs and trajectory length, by folder name."""
+    table = {}
+    for metrics in sorted(out.glob("*/metrics.json")):
+        record = json.loads(metrics.read_text())
+        table[metrics.parent.name] = (record["auc"], record["steps"], record["replans"])
+    return table
+
+
+def test_episodes_cover_every_combination_with_run_folder_names():
+    episodes = plan_episodes(["generated:0"], ["nearest", "mapex"], [0, 3], [0, 1])
+    assert len(episodes) == 8 and len({e.name for e in episodes}) == 8
+    assert episodes[0].name == "generated_0-nearest-start0-seed0"
+    assert (
+        Episode("x", "50037764_PLAN1", "mapex", 2, 0).run_id == "50037764_plan1-mapex-start2-seed0"
+    )
+
+
+def test_only_complete_folders_count_and_staging_is_removed(tmp_path):
+    episode = Episode("generated:0", "generated:0", "nearest", 0, 0)
+    assert not finished(episode, tmp_path)
+    (tmp_path / f".{episode.name}.abc").mkdir()
+    (tmp_path / episode.name).mkdir()
+    assert not finished(episode, tmp_path)
+    (tmp_path / episode.name / "metrics.json").write_text("{}")
+    assert finished(episode, tmp_path)
+    assert remove_staging(tmp_path) == 1 and remove_staging(tmp_path) == 0
+
+
+def test_a_killed_and_resumed_evaluation_gives_the_same_table(tmp_path):
+    whole, resumed = tmp_path / "whole", tmp_path / "resumed"
+    assert evaluate(whole, "--no-report").wait(600) == 0
+    with open(tmp_path / "killed.log", "wb") as log:
+        first = evaluate(resumed, "--no-report", log=log)
+        try:
+            until(lambda: list(resumed.glob("*/metrics.json")), "a first finished run", 300)
+        finally:
+            first.send_signal(signal.SIGKILL)
+            first.wait(10)
+    children = [int(pid) for pid in _started_pids(tmp_path / "killed.log")]
+    until(lambda: not any(pid_alive(pid) for pid in children), "the orphans to stop", 30)
+    assert evaluate(resumed).wait(600) == 0
+    assert run_table(resumed) == run_table(whole) and len(run_table(whole)) == 4
+    assert not list(resumed.glob(".*")), "a half-written run was left behind"
+    report = json.loads((resumed / "report" / "report.json").read_text())
+    assert report  # the report of the resumed evaluation was written
+    invocations = (resumed / "evaluations.jsonl").read_text().splitlines()
+    assert json.loads(invocations[-1])["episodes"] == 4
+
+
+def _started_pids(log_path) -> list[str]:
+    import re
+
+    time.sleep(0.1)
+    return re.findall(r"started \S+ \(pid (\d+)\)", log_path.read_text(errors="replace"))
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--maps", "/no/such/map"], "no such map directory"),
+        (["--maps", "generated:0", "--methods", "nearest,bogus"], "unknown method"),
+        (["--maps", "generated:0", "--jobs", "0"], "--jobs must be at least 1"),
+        (["--maps", "generated:0", "--starts", "7"], "start poses 0-3"),
+    ],
+)
+def test_bad_arguments_fail_in_one_line(args, message, tmp_path):
+    completed = subprocess.run(
+        [sys.executable, "-m", "services.evaluate", *args, "--out", str(tmp_path / "out")],
+        cwd=REPO_ROOT, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert completed.returncode == 2, completed.stderr
+    assert message in completed.stderr.strip().splitlines()[-1]
+    assert "Traceback" not in completed.stderr
+    assert os.path.exists(tmp_path) and not (tmp_path / "out").exists()

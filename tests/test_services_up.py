@@ -1,0 +1,262 @@
+"""`python -m services.up` end to end: real world, predictor and planner processes on loopback.
+
+Each test starts up on a free loopback port (it serves the hub there), so tests never meet
+the default hub tcp/127.0.0.1:7447 nor each other. Every process is killed at teardown.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import msgpack
+import numpy as np
+import pytest
+import torch
+from service_processes import REPO_ROOT, STOP_DEADLINE_S, free_loopback_port, until
+from up_processes import UpProcess, pid_alive, read_run
+
+from mapex.config import ExplorationConfig
+from mapex.episode import run_episode
+from mapex.prediction.learned import LearnedEnsemble
+from mapex.results import write_results
+from mapex.worlds import load_world
+from services.codec import DEFAULT_SERVICES, SCHEMA_VERSION
+from services.keys import (
+    ROBOT_TOPICS,
+    alive_planner_key,
+    alive_predictor_pattern,
+    parse_key,
+    predict_key,
+    robot_key,
+    run_key,
+)
+from services.messages import PoseMessage
+from services.zenoh_config import open_session, zenoh_config
+
+WORLD = "generated:0"
+
+
+def in_process_run(method: str, steps: int, tmp_path):
+    """The same episode in one process, with one torch thread like a worker, written out."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        world = load_world(WORLD)
+        result = run_episode(world, method, LearnedEnsemble(), 0, 0, ExplorationConfig(steps=steps))
+    finally:
+        torch.set_num_threads(threads)
+    return read_run(write_results(result, world, tmp_path / "in_process"))
+
+
+def start_up(tmp_path, name: str, *args: str) -> tuple[UpProcess, str]:
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    up = UpProcess(
+        tmp_path / f"{name}.log", "--world", WORLD, "--listen", endpoint,
+        "--run-prefix", name, "--out", str(tmp_path / "runs"), *args,
+    )  # fmt: skip
+    return up, endpoint
+
+
+def spawn_watch(tmp_path, endpoint: str, run: str) -> subprocess.Popen:
+    command = [
+        sys.executable, "-m", "services.watch", "--run", run, "--connect", endpoint,
+        "--png", str(tmp_path / "watch.png"), "--gif", str(tmp_path / "watch.gif"),
+        "--until-finished", "--every-s", "0.5", "--timeout-s", "400",
+    ]  # fmt: skip
+    log = open(tmp_path / "watch.log", "wb")  # noqa: SIM115 (closed with the process)
+    return subprocess.Popen(command, cwd=REPO_ROOT, stdout=log, stderr=log)
+
+
+def test_distributed_run_equals_in_process_run_and_a_viewer_sees_its_maps(tmp_path):
+    steps = 200
+    up, endpoint = start_up(tmp_path, "same", "--method", "mapex", "--steps", str(steps))
+    watch = None
+    try:
+        watch = spawn_watch(tmp_path, endpoint, "same-0")
+        assert up.wait() == 0, up.log()
+        assert watch.wait(60) == 0, (tmp_path / "watch.log").read_text()
+    finally:
+        up.kill()
+        if watch is not None and watch.poll() is None:
+            watch.kill()
+    metrics, trajectory, curves = read_run(tmp_path / "runs" / "same-0-r0")
+    expected_metrics, expected_trajectory, expected_curves = in_process_run(
+        "mapex", steps, tmp_path
+    )
+    np.testing.assert_array_equal(trajectory, expected_trajectory)
+    assert curves == expected_curves
+    assert metrics["auc"] == expected_metrics["auc"] and metrics["replans"] > 1
+    assert metrics["degraded_steps"] == [] and metrics["degraded_metric_samples"] == []
+    watch_log = (tmp_path / "watch.log").read_text()
+    for kind in ("observed_map", "prediction/mean", "prediction/variance"):
+        assert kind in watch_log, watch_log
+    assert (tmp_path / "watch.png").stat().st_size > 0
+    assert (tmp_path / "watch.gif").stat().st_size > 0
+
+
+def test_a_worker_killed_mid_run_is_restarted_and_the_run_completes(tmp_path):
+    up, endpoint = start_up(tmp_path, "kill", "--method", "mapex", "--steps", "1000")
+    session = open_session(zenoh_config(connect=[endpoint], listen=[]))
+    steps = []
+    subscriber = session.declare_subscriber(
+        robot_key("kill-0", "r0", "pose"),
+        lambda sample: steps.append(PoseMessage.decode(sample.payload.to_bytes()).t),
+    )
+    try:
+        until(lambda: steps and steps[-1] >= 100, "the run to reach step 100", 300)
+        victim = up.children()["predictor-g"][0]
+        os.kill(victim, signal.SIGKILL)
+        assert up.wait() == 0, up.log()
+    finally:
+        subscriber.undeclare()
+        session.close()
+        up.kill()
+    metrics, trajectory, curves = read_run(tmp_path / "runs" / "kill-0-r0")
+    assert metrics["steps"] == 1000 and int(curves[-1][0]) == 1000
+    assert len(trajectory) == 1001 or metrics["finished_at"] is not None
+    degraded = metrics["degraded_steps"] + metrics["degraded_metric_samples"]
+    assert degraded and min(degraded) >= 100, metrics
+    assert "predictor-g exited with -9 (SIGKILL); restarted (1/" in up.log()
+    assert len(up.children()["predictor-g"]) == 2
+
+
+def test_ctrl_c_leaves_no_process_behind(tmp_path):
+    up, endpoint = start_up(tmp_path, "stop", "--method", "nearest", "--steps", "1000")
+    try:
+        until(lambda: "planner-stop-0-r0" in up.children(), "up to start its children", 60)
+        time.sleep(3.0)  # let the children get going (imports, sessions)
+        children = [pid for pids in up.children().values() for pid in pids]
+        up.interrupt()
+        began = time.monotonic()
+        assert up.wait(STOP_DEADLINE_S + 5) == 130
+        until(
+            lambda: not any(pid_alive(pid) for pid in children),
+            "every child to exit",
+            max(STOP_DEADLINE_S - (time.monotonic() - began), 0.5),
+        )
+    finally:
+        up.kill()
+
+
+def test_services_joined_only_through_a_router_run_an_episode(tmp_path):
+    router_endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    router_log = open(tmp_path / "router.log", "wb")  # noqa: SIM115
+    router = subprocess.Popen(
+        [sys.executable, "-m", "deploy.router", "--listen", router_endpoint],
+        cwd=REPO_ROOT, stdout=router_log, stderr=router_log,
+    )  # fmt: skip
+    up = UpProcess(
+        tmp_path / "routed.log", "--world", WORLD, "--mode", "client", "--connect",
+        router_endpoint, "--run-prefix", "routed", "--out", str(tmp_path / "runs"),
+        "--method", "mapex", "--steps", "60",
+    )  # fmt: skip
+    try:
+        assert up.wait() == 0, up.log()
+    finally:
+        up.kill()
+        router.send_signal(signal.SIGINT)
+        router.wait(STOP_DEADLINE_S)
+        router_log.close()
+    metrics, trajectory, _ = read_run(tmp_path / "runs" / "routed-0-r0")
+    assert len(trajectory) == 61 and metrics["degraded_steps"] == []
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--steps", "0"], "--steps must be at least 1"),
+        (["--world", "/no/such/map"], "error"),
+        (["--members", "g,g9"], "unknown member"),
+        (["--run-prefix", "Bad Id"], "--run-prefix"),
+        (["--set", "sensor.nope=1"], "error"),
+    ],
+)
+def test_bad_flags_fail_in_one_line(args, message):
+    completed = subprocess.run(
+        [sys.executable, "-m", "services.up", *args],
+        cwd=REPO_ROOT, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert completed.returncode == 2
+    lines = completed.stderr.strip().splitlines()
+    assert message in lines[-1] and "Traceback" not in completed.stderr
+
+
+def malformed_payloads() -> dict[str, bytes]:
+    """One payload per kind of damage DESIGN.md names (none of them a valid step)."""
+    observed = np.full((4, 5), 1, dtype=np.float32)  # a map of the wrong dtype
+    wrong_dtype = msgpack.packb(
+        {"schema": SCHEMA_VERSION, "type": "predict_request", "request_id": 1,
+         "observed": {"dtype": "float32", "shape": [4, 5], "zlib": False,
+                      "data": observed.tobytes()}},
+    )  # fmt: skip
+    wrong_shape = msgpack.packb(
+        {"schema": SCHEMA_VERSION, "type": "step_request", "seq": 10**6,
+         "cells": {"dtype": "int32", "shape": [3, 3, 3], "zlib": False,
+                   "data": bytes(3 * 3 * 3 * 4)}},
+    )  # fmt: skip
+    return {
+        "random bytes": np.random.default_rng(0).bytes(300),
+        "wrong schema": msgpack.packb({"schema": SCHEMA_VERSION + 1, "type": "step_request"}),
+        "wrong dtype": wrong_dtype,
+        "wrong shape": wrong_shape,
+        "oversized": bytes(DEFAULT_SERVICES.max_message_bytes + 1),
+    }
+
+
+def attack(session, run: str) -> list[str]:
+    """Send every malformed payload to every queryable and subscribed key of `run`."""
+    keys = [run_key(run, "world_info"), run_key(run, "ground_truth")]
+    keys += [robot_key(run, "r0", topic) for topic in ROBOT_TOPICS]
+    for reply in session.liveliness().get(alive_predictor_pattern(), timeout=2.0):
+        alive = parse_key(str(reply.ok.key_expr))
+        keys.append(predict_key(alive.member, alive.worker_id))
+    assert any("/predict/" in key for key in keys)
+    for payload in malformed_payloads().values():
+        for key in keys:
+            session.put(key, payload)
+            list(session.get(key, payload=payload, timeout=5.0))
+    return keys
+
+
+def test_malformed_payloads_harm_no_process_and_no_result(tmp_path):
+    steps = 300
+    up, endpoint = start_up(tmp_path, "bad", "--method", "nearest", "--steps", str(steps))
+    session = open_session(zenoh_config(connect=[endpoint], listen=[]))
+    watch = spawn_watch(tmp_path, endpoint, "bad-0")
+    try:
+        until(lambda: "planner-bad-0-r0" in up.children(), "up to start its children", 60)
+        until(
+            lambda: list(session.liveliness().get(alive_planner_key("bad-0"), timeout=1.0)),
+            "the planner to start",
+            120,
+        )
+        until(
+            lambda: (
+                len(list(session.liveliness().get(alive_predictor_pattern(), timeout=1.0))) == 4
+            ),
+            "the four workers to start",
+            120,
+        )
+        attack(session, "bad-0")
+        assert up.wait() == 0, up.log()
+        assert watch.wait(60) == 0, (tmp_path / "watch.log").read_text()
+    finally:
+        session.close()
+        up.kill()
+        if watch.poll() is None:
+            watch.kill()
+    log = up.log()
+    assert "restarted" not in log and "Traceback" not in log, log
+    metrics, trajectory, curves = read_run(tmp_path / "runs" / "bad-0-r0")
+    expected_metrics, expected_trajectory, expected_curves = in_process_run(
+        "nearest", steps, tmp_path
+    )
+    np.testing.assert_array_equal(trajectory, expected_trajectory)
+    assert curves == expected_curves and metrics["auc"] == expected_metrics["auc"]
+    for refusal in ("refused a malformed step request", "refused a malformed request", "exceeds"):
+        assert refusal in log
+    assert "dropped a malformed" in (tmp_path / "watch.log").read_text()
