@@ -232,6 +232,7 @@ class ServicesConfig:
     hub_endpoint: str = "tcp/127.0.0.1:7447"  # well-known loopback endpoint served by services.up
     ephemeral_listen_endpoint: str = "tcp/127.0.0.1:0"  # default listener: loopback, any free port
     predict_timeout_s: float = 10.0  # per-member prediction query; a hung worker costs this once
+    supervision_poll_s: float = 0.2  # services.up / evaluate: how often children are checked
     publish_period_s: float = 0.1  # planner -> viewers: at most one batch of maps per period
     predict_retries: int = 1  # re-sends of a query that no worker was routed (no reply at all)
     liveliness_query_timeout_s: float = 2.0  # planner's start-up discovery of live workers

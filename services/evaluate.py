@@ -44,9 +44,9 @@ from mapex.worlds import WorldError, load_world
 from services.codec import DEFAULT_SERVICES, ProtocolError
 from services.keys import ID_MAX_CHARS, robot_key_pattern
 from services.messages import MetricsMessage, decode_message
+from services.pool import hub_session_config, parse_member_list, worker_specs
 from services.serving import configure_logging, stop_on_signals
 from services.supervisor import ProcessSpec, Supervisor
-from services.up import POLL_S, hub_session_config, parse_member_list, worker_specs
 from services.zenoh_config import HUB_HELP, ZenohConfigError, add_zenoh_arguments, open_session
 
 EXIT_FAILED = 1  # some episodes failed (the others are kept)
@@ -182,7 +182,7 @@ def run_episodes(
             steps = done * args.steps + sum(progress.of(e.run_id) for e in running.values())
             bar.update(min(steps, bar.total) - bar.n)
             bar.set_postfix_str(f"{done} done, {len(failures)} failed", refresh=False)
-            time.sleep(POLL_S)
+            time.sleep(supervisor.services.supervision_poll_s)
     return done, failures
 
 

@@ -41,20 +41,19 @@ from mapex.worlds import DEFAULT_SPEC, WorldError, load_world
 from services.codec import DEFAULT_SERVICES, ProtocolError
 from services.keys import ID_MAX_CHARS, is_valid_id, robot_id, robot_key
 from services.messages import PoseMessage, decode_message
+from services.pool import hub_session_config, parse_member_list, worker_specs
 from services.serving import configure_logging, stop_on_signals
-from services.supervisor import ProcessSpec, Supervisor, claim_hub
+from services.supervisor import ProcessSpec, Supervisor
 from services.zenoh_config import (
     HUB_HELP,
     ZenohConfigError,
     add_zenoh_arguments,
     open_session,
-    zenoh_config,
 )
 
 EXIT_FAILED = 1  # a planner failed
 EXIT_USAGE = 2  # bad flags, world or Zenoh configuration
 EXIT_INTERRUPTED = 130
-POLL_S = 0.2  # supervision loop period
 RUN_PREFIX_MAX_CHARS = ID_MAX_CHARS - 8  # room for the '-<k>' run suffix
 
 log = logging.getLogger("services.up")
@@ -79,22 +78,6 @@ def plan_runs(args: argparse.Namespace) -> list[Run]:
             args.seed + k,
         )
         for k in range(args.runs)
-    ]
-
-
-def worker_specs(
-    members: tuple[str, ...], replicas: int, threads: int, zenoh_flags: list[str]
-) -> list[ProcessSpec]:
-    """`replicas` predictor workers per member, restarted when they die."""
-    return [
-        ProcessSpec(
-            f"predictor-{member}" + (f"-{replica}" if replicas > 1 else ""),
-            "services.predictor",
-            ("--member", member, "--threads", str(threads), *zenoh_flags),
-            restart=True,
-        )
-        for member in members
-        for replica in range(replicas)
     ]
 
 
@@ -138,27 +121,6 @@ def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str
                 )
             )
     return {"workers": workers, "worlds": worlds, "planners": planners}
-
-
-def hub_session_config(args: argparse.Namespace, services: ServicesConfig) -> tuple:
-    """(Zenoh config of up's own session, flags for the children)."""
-    flags: list[str] = []
-    if args.mode:
-        flags += ["--mode", args.mode]
-    if args.config:
-        flags += ["--config", args.config]
-    if args.connect:  # a hub (router) elsewhere: everyone connects there
-        for endpoint in args.connect:
-            flags += ["--connect", endpoint]
-        own = zenoh_config(args.mode, args.connect, args.listen, args.config, services)
-        return own, flags
-    listen = args.listen or [services.hub_endpoint]
-    if args.listen or claim_hub(services.hub_endpoint):
-        for endpoint in listen:
-            flags += ["--connect", endpoint]
-        return zenoh_config(args.mode, [], listen, args.config, services), flags
-    log.info("a hub already listens on %s: joining it", services.hub_endpoint)
-    return zenoh_config(args.mode, None, None, args.config, services), flags
 
 
 class StepCounter:
@@ -213,7 +175,7 @@ def supervise(
                     if code != 0:
                         failed.append(f"{name} exited with {code}")
             bar.update(min(counter.total(), total_steps) - bar.n)
-            time.sleep(POLL_S)
+            time.sleep(supervisor.services.supervision_poll_s)
     if stop.is_set():
         log.info("interrupted: stopping every process")
         return EXIT_INTERRUPTED
@@ -273,17 +235,6 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     add_zenoh_arguments(parser, HUB_HELP)
     return parser
-
-
-def parse_member_list(text: str) -> tuple[str, ...]:
-    """argparse type of --members: comma-separated member names, or 'none'."""
-    if text == "none":
-        return ()
-    members = tuple(item.strip() for item in text.split(","))
-    unknown = [m for m in members if m not in MEMBER_NAMES]
-    if unknown:
-        raise argparse.ArgumentTypeError(f"unknown member(s) {', '.join(unknown)}")
-    return members
 
 
 def run_cli(argv: list[str] | None = None) -> int:

@@ -7,6 +7,7 @@ the default hub tcp/127.0.0.1:7447 nor each other. Every process is killed at te
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -260,3 +261,23 @@ def test_malformed_payloads_harm_no_process_and_no_result(tmp_path):
     for refusal in ("refused a malformed step request", "refused a malformed request", "exceeds"):
         assert refusal in log
     assert "dropped a malformed" in (tmp_path / "watch.log").read_text()
+
+
+def test_two_runs_share_a_pool_of_replicas_and_every_replica_works(tmp_path):
+    up, _ = start_up(
+        tmp_path, "pool", "--method", "mapex", "--steps", "60", "--runs", "2", "--replicas", "2"
+    )
+    try:
+        assert up.wait() == 0, up.log()
+    finally:
+        up.kill()
+    log = up.log()
+    answered = {
+        name: int(count)
+        for name, count in re.findall(r"\[(predictor-g\d?-\d)\].*answering (\d+) queries", log)
+    }
+    assert len(answered) == 8 and all(answered.values()), answered  # both replicas of each
+    first, second = (read_run(tmp_path / "runs" / f"pool-{k}-r0") for k in (0, 1))
+    assert first[0]["start_index"] == 0 and second[0]["start_index"] == 1
+    for metrics, _, _ in (first, second):
+        assert metrics["degraded_steps"] == [] and metrics["degraded_metric_samples"] == []

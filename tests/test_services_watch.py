@@ -35,15 +35,13 @@ from services.messages import (
 )
 from services.watch import (
     WATCHED_TOPICS,
-    FrameReel,
     Inbox,
     WatchState,
     apply_payloads,
     decode_topic,
-    render_frame,
     run_cli,
-    write_atomic,
 )
+from services.watch_render import FrameReel, render_frame, write_atomic
 
 SHAPE = (40, 50)
 POSE_RGB = (31, 119, 180)  # tab:blue, the pose marker

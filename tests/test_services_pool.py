@@ -1,0 +1,45 @@
+"""The local deployment's shape: member lists, worker specs and the hub choice."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from mapex.config import ServicesConfig
+from services.pool import hub_session_config, parse_member_list, worker_specs
+
+
+def zenoh_args(**flags) -> argparse.Namespace:
+    values = {"mode": None, "connect": None, "listen": None, "config": None}
+    return argparse.Namespace(**{**values, **flags})
+
+
+def test_member_lists_are_checked():
+    assert parse_member_list("g,g2") == ("g", "g2")
+    assert parse_member_list("none") == ()
+    with pytest.raises(argparse.ArgumentTypeError, match="g7"):
+        parse_member_list("g,g7")
+
+
+def test_worker_specs_name_replicas_and_restart_them():
+    specs = worker_specs(("g", "g1"), 2, 1, ["--connect", "tcp/127.0.0.1:1"])
+    assert [s.name for s in specs] == ["predictor-g-0", "predictor-g-1", "predictor-g1-0",
+                                       "predictor-g1-1"]  # fmt: skip
+    assert all(s.restart and s.args[-2:] == ("--connect", "tcp/127.0.0.1:1") for s in specs)
+    assert [s.name for s in worker_specs(("g",), 1, 1, [])] == ["predictor-g"]
+
+
+def test_a_given_hub_is_joined_and_passed_to_every_child():
+    config, flags = hub_session_config(
+        zenoh_args(mode="client", connect=["tcp/10.0.0.5:7447"]), ServicesConfig()
+    )
+    assert flags == ["--mode", "client", "--connect", "tcp/10.0.0.5:7447"]
+    assert "10.0.0.5" in config.get_json("connect/endpoints")
+
+
+def test_a_listen_endpoint_makes_up_the_hub_there():
+    config, flags = hub_session_config(zenoh_args(listen=["tcp/127.0.0.1:7999"]), ServicesConfig())
+    assert flags == ["--connect", "tcp/127.0.0.1:7999"]
+    assert "7999" in config.get_json("listen/endpoints")
+    assert config.get_json("connect/endpoints") == "[]"
