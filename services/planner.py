@@ -174,6 +174,8 @@ def main(
         )
     finally:
         session.close()
+    if supervisor_gone():  # the pool went down with it: the end of the run may be degraded
+        raise PlannerError("the supervisor is gone: run abandoned, nothing written")
     out_dir = out or DEFAULT_RESULTS_DIR / run_name(result)
     write_results(result, world, out_dir)
     return result, out_dir

@@ -50,21 +50,30 @@ def worker_specs(
 def hub_session_config(
     args: argparse.Namespace, services: ServicesConfig
 ) -> tuple[zenoh.Config, list[str]]:
-    """(Zenoh config of up's own session, flags for the children)."""
-    flags: list[str] = []
-    if args.mode:
-        flags += ["--mode", args.mode]
-    if args.config:
-        flags += ["--config", args.config]
+    """(Zenoh config of the supervisor's own session, Zenoh flags for every child).
+
+    With --connect, everyone joins that hub or router. Otherwise the supervisor serves the
+    hub on --listen (default tcp/127.0.0.1:7447) as a Zenoh *router* and its children are
+    clients of it: every message takes one hop through the router, and no peer-to-peer mesh
+    forms, whose routes Zenoh re-computes (dropping queries in flight) whenever a
+    short-lived peer such as an episode's planner joins or leaves. If the hub endpoint is
+    already taken (another supervisor), the children join that one the same way.
+    """
+    flags: list[str] = ["--config", args.config] if args.config else []
     if args.connect:  # a hub (router) elsewhere: everyone connects there
+        flags += ["--mode", args.mode] if args.mode else []
         for endpoint in args.connect:
             flags += ["--connect", endpoint]
         own = zenoh_config(args.mode, args.connect, args.listen, args.config, services)
         return own, flags
+    mode = args.mode or "router"
+    flags += ["--mode", "client" if mode == "router" else mode]
     listen = args.listen or [services.hub_endpoint]
-    if args.listen or claim_hub(services.hub_endpoint):
-        for endpoint in listen:
-            flags += ["--connect", endpoint]
-        return zenoh_config(args.mode, [], listen, args.config, services), flags
-    log.info("a hub already listens on %s: joining it", services.hub_endpoint)
-    return zenoh_config(args.mode, None, None, args.config, services), flags
+    if not args.listen and not claim_hub(services.hub_endpoint):
+        log.info("a hub already listens on %s: joining it", services.hub_endpoint)
+        flags += ["--connect", services.hub_endpoint]
+        own_mode = "client" if mode == "router" else mode
+        return zenoh_config(own_mode, [services.hub_endpoint], None, args.config, services), flags
+    for endpoint in listen:
+        flags += ["--connect", endpoint]
+    return zenoh_config(mode, [], listen, args.config, services), flags

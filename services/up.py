@@ -1,6 +1,7 @@
 """`python -m services.up`: the whole distributed simulator on one machine, supervised.
 
-With no arguments it serves the Zenoh hub on tcp/127.0.0.1:7447, spawns the world simulator
+With no arguments it serves the Zenoh hub on tcp/127.0.0.1:7447 (a router-mode session; the
+children are its clients, see `services.pool`), spawns the world simulator
 (the embedded default world), one predictor worker per ensemble member (g, g1, g2, g3) and
 the planner, runs a 1000-step MapEx episode with a progress bar and writes the same results
 folder as `python -m mapex run` (results/<world>-<method>-start<i>-seed<s>).

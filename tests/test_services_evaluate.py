@@ -60,7 +60,8 @@ def test_only_complete_folders_count_and_staging_is_removed(tmp_path):
 
 def test_a_killed_and_resumed_evaluation_gives_the_same_table(tmp_path):
     whole, resumed = tmp_path / "whole", tmp_path / "resumed"
-    assert evaluate(whole, "--no-report").wait(600) == 0
+    with open(tmp_path / "whole.log", "wb") as log:
+        assert evaluate(whole, "--no-report", log=log).wait(600) == 0
     with open(tmp_path / "killed.log", "wb") as log:
         first = evaluate(resumed, "--no-report", log=log)
         try:
@@ -70,7 +71,8 @@ def test_a_killed_and_resumed_evaluation_gives_the_same_table(tmp_path):
             first.wait(10)
     children = [int(pid) for pid in _started_pids(tmp_path / "killed.log")]
     until(lambda: not any(pid_alive(pid) for pid in children), "the orphans to stop", 30)
-    assert evaluate(resumed).wait(600) == 0
+    with open(tmp_path / "resumed.log", "wb") as log:
+        assert evaluate(resumed, log=log).wait(600) == 0
     assert run_table(resumed) == run_table(whole) and len(run_table(whole)) == 4
     assert not list(resumed.glob(".*")), "a half-written run was left behind"
     report = json.loads((resumed / "report" / "report.json").read_text())

@@ -38,8 +38,17 @@ def test_a_given_hub_is_joined_and_passed_to_every_child():
     assert "10.0.0.5" in config.get_json("connect/endpoints")
 
 
-def test_a_listen_endpoint_makes_up_the_hub_there():
+def test_a_listen_endpoint_makes_up_the_hub_there_a_router_with_client_children():
     config, flags = hub_session_config(zenoh_args(listen=["tcp/127.0.0.1:7999"]), ServicesConfig())
-    assert flags == ["--connect", "tcp/127.0.0.1:7999"]
+    assert flags == ["--mode", "client", "--connect", "tcp/127.0.0.1:7999"]
     assert "7999" in config.get_json("listen/endpoints")
     assert config.get_json("connect/endpoints") == "[]"
+    assert config.get_json("mode") == '"router"'
+
+
+def test_peer_mode_can_still_be_asked_for():
+    config, flags = hub_session_config(
+        zenoh_args(mode="peer", listen=["tcp/127.0.0.1:7999"]), ServicesConfig()
+    )
+    assert flags == ["--mode", "peer", "--connect", "tcp/127.0.0.1:7999"]
+    assert config.get_json("mode") == '"peer"'
