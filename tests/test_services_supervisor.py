@@ -15,7 +15,7 @@ from service_processes import free_loopback_port, until
 from services.supervisor import ProcessSpec, Supervisor, claim_hub, parse_tcp_endpoint
 
 TESTS_DIR = Path(__file__).resolve().parent
-GRACE_S = 0.5
+GRACE_S = 3.0  # the default grace; a loaded 2-core machine needs it for a polite child
 STOP_MARGIN_S = 1.0  # stop() must be done within its grace period plus this
 
 
@@ -141,7 +141,9 @@ def test_stop_leaves_no_process_even_when_one_ignores_sigterm(supervised):
             os.kill(grandchild_pid, signal.SIGKILL)
     assert supervisor.returncode("polite") == 0
     assert supervisor.returncode("stubborn") == -signal.SIGKILL
-    assert sink.has("[supervisor] killed stubborn: still running after the 0.5 s grace period")
+    assert sink.has(
+        f"[supervisor] killed stubborn: still running after the {GRACE_S:g} s grace period"
+    )
     assert supervisor.poll() == []  # a stopped server is not restarted
     supervisor.stop(GRACE_S)  # idempotent
 
