@@ -27,7 +27,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import zenoh
 from tqdm import tqdm
 
 from mapex.config import (
@@ -41,10 +40,10 @@ from mapex.methods import ABLATIONS, MAIN_COMPARISON, METHODS
 from mapex.prediction.base import MEMBER_NAMES
 from mapex.results import METRICS_FILE
 from mapex.worlds import WorldError, load_world
-from services.codec import DEFAULT_SERVICES, ProtocolError
-from services.keys import ID_MAX_CHARS, robot_key_pattern
-from services.messages import MetricsMessage, decode_message
-from services.pool import hub_session_config, parse_member_list, worker_specs
+from services.codec import DEFAULT_SERVICES
+from services.keys import ID_MAX_CHARS
+from services.messages import MetricsMessage
+from services.pool import RunProgress, hub_session_config, parse_member_list, worker_specs
 from services.serving import configure_logging, stop_on_signals
 from services.supervisor import ProcessSpec, Supervisor
 from services.zenoh_config import HUB_HELP, ZenohConfigError, add_zenoh_arguments, open_session
@@ -117,40 +116,12 @@ def planner_spec(
     return ProcessSpec(f"episode-{episode.run_id}", "services.planner", (*planner_args, *flags))
 
 
-class Progress:
-    """Steps done per run id, from the metrics the planners publish (every 50 steps)."""
-
-    def __init__(self, session: zenoh.Session) -> None:
-        self.steps: dict[str, int] = {}
-        self._lock = threading.Lock()
-        self._subscriber = session.declare_subscriber(
-            robot_key_pattern("metrics"), self._on_metrics
-        )
-
-    def of(self, run_id: str) -> int:
-        with self._lock:
-            return self.steps.get(run_id, 0)
-
-    def _on_metrics(self, sample: zenoh.Sample) -> None:
-        try:
-            message = decode_message(sample.payload.to_bytes(), (MetricsMessage,))
-        except ProtocolError as error:
-            log.warning("dropped a metrics message: %s", error)
-            return
-        run_id = str(sample.key_expr).split("/")[2]
-        with self._lock:
-            self.steps[run_id] = max(self.steps.get(run_id, 0), message.t)
-
-    def close(self) -> None:
-        self._subscriber.undeclare()
-
-
 def run_episodes(
     supervisor: Supervisor,
     todo: list[Episode],
     args: argparse.Namespace,
     flags: list[str],
-    progress: Progress,
+    progress: RunProgress,
     stop: threading.Event,
 ) -> tuple[int, list[str]]:
     """Run `todo`, `args.jobs` at a time; (episodes finished, failure lines)."""
@@ -200,7 +171,7 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
     own_config, flags = hub_session_config(args, services)
     stop = stop_on_signals()
     session = open_session(own_config)
-    progress = Progress(session)
+    progress = RunProgress(session, "metrics", MetricsMessage)
     supervisor = Supervisor(services=services)
     try:
         if todo:

@@ -1,19 +1,23 @@
 """A supervised local deployment, as `services.up` and `services.evaluate` start it.
 
 Which Zenoh hub to use (serve tcp/127.0.0.1:7447 here, or join one that is already there
-or given with --connect), the flags every child gets for it, and the predictor-worker
-processes of the pool.
+or given with --connect), the flags every child gets for it, the predictor-worker
+processes of the pool, and the progress of the runs from what their processes publish.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import threading
 
 import zenoh
 
 from mapex.config import ServicesConfig
 from mapex.prediction.base import MEMBER_NAMES
+from services.codec import ProtocolError
+from services.keys import RobotKey, RobotTopic, parse_key, robot_key_pattern
+from services.messages import Message, decode_message
 from services.supervisor import ProcessSpec, claim_hub
 from services.zenoh_config import zenoh_config
 
@@ -77,3 +81,37 @@ def hub_session_config(
     for endpoint in listen:
         flags += ["--connect", endpoint]
     return zenoh_config(mode, [], listen, args.config, services), flags
+
+
+class RunProgress:
+    """The latest step heard of every robot of every run, from one published topic.
+
+    `topic` is one whose messages carry the step `t` (the world's `pose` every step, the
+    planner's `metrics` every sample); malformed messages are logged and dropped.
+    """
+
+    def __init__(self, session: zenoh.Session, topic: RobotTopic, kind: type[Message]) -> None:
+        self.kind = kind
+        self._steps: dict[tuple[str, str], int] = {}  # (run, robot) -> latest t
+        self._lock = threading.Lock()
+        self._subscriber = session.declare_subscriber(robot_key_pattern(topic), self._on_sample)
+
+    def of(self, run: str) -> int:
+        """Steps done by the robots of `run`, all together."""
+        with self._lock:
+            return sum(t for (run_id, _), t in self._steps.items() if run_id == run)
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        try:
+            key = parse_key(str(sample.key_expr))
+            message = decode_message(sample.payload.to_bytes(), (self.kind,))
+        except ProtocolError as error:
+            log.warning("dropped a progress message: %s", error)
+            return
+        if isinstance(key, RobotKey):
+            with self._lock:
+                robot = (key.run, key.robot)
+                self._steps[robot] = max(self._steps.get(robot, 0), message.t)

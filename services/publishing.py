@@ -58,7 +58,7 @@ class RunPublisher:
         self._flushing = False
         self.period_s = services.publish_period_s
         self._changed = threading.Condition()
-        self._prediction_id: int | None = None
+        self._frontiers_id: int | None = None
         self._samples_seen = 0
         self._thread = threading.Thread(target=self._send_loop, name="publish", daemon=True)
         self._thread.start()
@@ -71,11 +71,11 @@ class RunPublisher:
         """Everything that changed by step `t`: the map always, the rest when it changed."""
         self._hand_over("observed_map", _Lazy(t, "observed", explorer.observed.copy()))
         self._publish_plan(t, explorer)
-        self._publish_metrics(recorder, degraded=bool(explorer.stats.degraded_steps))
+        self._publish_metrics(recorder.curves, degraded=bool(explorer.stats.degraded_steps))
 
     def _publish_plan(self, t: int, explorer: Explorer) -> None:
-        if explorer.stats.replans and id(explorer.frontiers) != self._prediction_id:
-            self._prediction_id = id(explorer.frontiers)
+        if explorer.stats.replans and id(explorer.frontiers) != self._frontiers_id:
+            self._frontiers_id = id(explorer.frontiers)
             scores = explorer.frontier_scores
             if scores is None or len(scores) != len(explorer.frontiers):
                 scores = np.full(len(explorer.frontiers), np.nan)
@@ -95,13 +95,11 @@ class RunPublisher:
 
     def finished(self, result: EpisodeResult, detail: str) -> None:
         """The last metric sample (taken after the last step) and the final status."""
-        self._publish_metrics_of(result.curves, degraded=bool(result.stats.degraded_steps))
+        self._publish_metrics(result.curves, degraded=bool(result.stats.degraded_steps))
         self.status(result.steps, "finished", detail)
 
-    def _publish_metrics(self, recorder: MetricRecorder, degraded: bool) -> None:
-        self._publish_metrics_of(recorder.curves, degraded)
-
-    def _publish_metrics_of(self, curves: MetricCurves, degraded: bool) -> None:
+    def _publish_metrics(self, curves: MetricCurves, degraded: bool) -> None:
+        """The newest metric sample, when there is one not published yet."""
         if len(curves.steps) == self._samples_seen:
             return
         self._samples_seen = len(curves.steps)

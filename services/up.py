@@ -26,7 +26,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import zenoh
 from tqdm import tqdm
 
 from mapex.config import (
@@ -39,10 +38,10 @@ from mapex.config import (
 from mapex.methods import METHODS
 from mapex.prediction.base import MEMBER_NAMES
 from mapex.worlds import DEFAULT_SPEC, WorldError, load_world
-from services.codec import DEFAULT_SERVICES, ProtocolError
-from services.keys import ID_MAX_CHARS, is_valid_id, robot_id, robot_key
-from services.messages import PoseMessage, decode_message
-from services.pool import hub_session_config, parse_member_list, worker_specs
+from services.codec import DEFAULT_SERVICES
+from services.keys import ID_MAX_CHARS, is_valid_id, robot_id
+from services.messages import PoseMessage
+from services.pool import RunProgress, hub_session_config, parse_member_list, worker_specs
 from services.serving import configure_logging, stop_on_signals
 from services.supervisor import ProcessSpec, Supervisor
 from services.zenoh_config import (
@@ -124,41 +123,11 @@ def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str
     return {"workers": workers, "worlds": worlds, "planners": planners}
 
 
-class StepCounter:
-    """Counts the steps of every robot from the poses the worlds publish."""
-
-    def __init__(self, session: zenoh.Session, runs: list[Run]) -> None:
-        self.steps: dict[str, int] = {}
-        self._lock = threading.Lock()
-        self._subscribers = [
-            session.declare_subscriber(robot_key(run.run_id, robot_id(i), "pose"), self._on_pose)
-            for run in runs
-            for i in range(len(run.starts))
-        ]
-
-    def total(self) -> int:
-        with self._lock:
-            return sum(self.steps.values())
-
-    def _on_pose(self, sample: zenoh.Sample) -> None:
-        try:
-            pose = decode_message(sample.payload.to_bytes(), (PoseMessage,))
-        except ProtocolError as error:
-            log.warning("dropped a pose: %s", error)
-            return
-        with self._lock:
-            key = str(sample.key_expr)
-            self.steps[key] = max(self.steps.get(key, 0), pose.t)
-
-    def close(self) -> None:
-        for subscriber in self._subscribers:
-            subscriber.undeclare()
-
-
 def supervise(
     supervisor: Supervisor,
     planners: list[ProcessSpec],
-    counter: StepCounter,
+    progress: RunProgress,
+    runs: list[Run],
     total_steps: int,
     stop: threading.Event,
     show_progress: bool,
@@ -175,7 +144,8 @@ def supervise(
                     pending.discard(name)
                     if code != 0:
                         failed.append(f"{name} exited with {code}")
-            bar.update(min(counter.total(), total_steps) - bar.n)
+            done = sum(progress.of(run.run_id) for run in runs)
+            bar.update(min(done, total_steps) - bar.n)
             time.sleep(supervisor.services.supervision_poll_s)
     if stop.is_set():
         log.info("interrupted: stopping every process")
@@ -194,16 +164,18 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
     specs = child_specs(args, runs, zenoh_flags)
     stop = stop_on_signals()
     session = open_session(own_config)
-    counter = StepCounter(session, runs)
+    progress = RunProgress(session, "pose", PoseMessage)
     supervisor = Supervisor(services=services)
     try:
         for spec in specs["workers"] + specs["worlds"] + specs["planners"]:
             supervisor.start(spec)
         total = args.steps * sum(len(run.starts) for run in runs)
-        return supervise(supervisor, specs["planners"], counter, total, stop, not args.no_progress)
+        return supervise(
+            supervisor, specs["planners"], progress, runs, total, stop, not args.no_progress
+        )
     finally:
         supervisor.stop()
-        counter.close()
+        progress.close()
         session.close()
 
 
