@@ -87,6 +87,7 @@ class NetworkConfig:
     downscale: int = 8  # the FFC trunk works at 1/downscale resolution (pixel unshuffle)
     global_ratio: float = 0.75  # share of channels in the spectral (global) branch
     refine_channels: int = 16  # full-resolution refinement of the upsampled logits
+    context_cells: int = 32  # map around a predicted region that the network also sees
 
 
 @dataclass(frozen=True)
@@ -98,19 +99,29 @@ class PredictorTrainingConfig:
     snapshot_methods: tuple[str, ...] = ("nearest", "observed_map")
     starts_per_world: int = 2  # procedural plans
     kth_starts_per_world: int = 4
-    kth_share: float = 0.3  # share of training crops taken from KTH snapshots (if any)
+    kth_share: float = 0.5  # share of training crops taken from KTH snapshots (if any)
     snapshot_steps: int = 1000
     snapshot_every_steps: int = 50
     crop_cells: int = 256
     frontier_share: float = 0.75  # crops centred near a frontier, the rest anywhere
+    edge_overhang_cells: int = 64  # how far a crop may hang over the map's border
     batch_size: int = 8
-    main_steps: int = 2000  # G, on all data
+    main_steps: int = 2500  # G, on all data
     member_steps: int = 1000  # G_1..G_3, each on a third of the worlds
     learning_rate: float = 2e-3
     weight_decay: float = 1e-4
     wall_weight: float = 2.0  # BCE weight of wall cells (walls are the rarer class)
     checkpoint_every_steps: int = 100
     seed: int = 0
+
+
+@dataclass(frozen=True)
+class PredictorEvaluationConfig:
+    """`python -m mapex.prediction.evaluate` (SPEC §4): when snapshots are taken, and what
+    counts as near the known map."""
+
+    snapshot_times: tuple[int, ...] = (100, 300, 600)
+    near_known_cells: int = 10  # 1 m: unknown cells this close to a known one are "near"
 
 
 @dataclass(frozen=True)

@@ -21,8 +21,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import zenoh
 
-from mapex.config import ServicesConfig
-from mapex.prediction.base import MEMBER_NAMES, EnsemblePrediction, Predictor, Region
+from mapex.config import NetworkConfig, ServicesConfig
+from mapex.prediction.base import (
+    MEMBER_NAMES,
+    EnsemblePrediction,
+    Predictor,
+    Region,
+    with_context,
+)
 from services.codec import DEFAULT_SERVICES, ProtocolError
 from services.keys import AliveKey, alive_predictor_pattern, parse_key, predict_key
 from services.messages import ErrorReply, PredictReply, PredictRequest, decode_message
@@ -82,6 +88,7 @@ class ZenohEnsemble(Predictor):
 
     name = "zenoh"
     n_members = len(MEMBER_NAMES)
+    context_cells = NetworkConfig().context_cells  # as the learned workers' own ensemble
 
     def __init__(self, session: zenoh.Session, services: ServicesConfig = DEFAULT_SERVICES) -> None:
         self.session = session
@@ -203,12 +210,11 @@ class ZenohEnsemble(Predictor):
         prediction overlaps the next steps of exploration). `observed` must not change.
         """
         members = tuple(range(self.n_members)) if members is None else tuple(members)
-        r0, r1, c0, c1 = region or (0, observed.shape[0], 0, observed.shape[1])
-        inflight = self._start(observed[r0:r1, c0:c1], members)
+        inflight = self._start(self._members_view(observed, region), members)
 
         def result() -> EnsemblePrediction:
             answers = self._finish(inflight)
-            return _Answered(answers.probabilities).predict(observed, region, answers.answered)
+            return self._assemble(observed, region, answers)
 
         return result
 
@@ -264,10 +270,20 @@ class ZenohEnsemble(Predictor):
         The prediction's main map is member 0 only if G answered (check `answered[0] == 0`).
         """
         members = tuple(range(self.n_members)) if members is None else tuple(members)
-        r0, r1, c0, c1 = region or (0, observed.shape[0], 0, observed.shape[1])
-        answers = self.predict_available(observed[r0:r1, c0:c1], members)
-        prediction = _Answered(answers.probabilities).predict(observed, region, answers.answered)
-        return prediction, answers
+        answers = self.predict_available(self._members_view(observed, region), members)
+        return self._assemble(observed, region, answers), answers
+
+    def _members_view(self, observed: np.ndarray, region: Region | None) -> np.ndarray:
+        """The crop the workers predict: `region` with `context_cells` of map around it."""
+        full = (0, observed.shape[0], 0, observed.shape[1])
+        r0, r1, c0, c1 = with_context(region or full, observed.shape, self.context_cells)
+        return observed[r0:r1, c0:c1]
+
+    def _assemble(
+        self, observed: np.ndarray, region: Region | None, answers: MemberAnswers
+    ) -> EnsemblePrediction:
+        answered = _Answered(answers.probabilities, self.context_cells)
+        return answered.predict(observed, region, answers.answered)
 
     def _send(self, member: int, payload: bytes) -> _Pending | None:
         name = MEMBER_NAMES[member]
@@ -329,9 +345,10 @@ def _reply_problem(
 class _Answered(Predictor):
     """Already computed member outputs, so `Predictor.predict` can assemble them."""
 
-    def __init__(self, probabilities: np.ndarray) -> None:
+    def __init__(self, probabilities: np.ndarray, context_cells: int) -> None:
         self.probabilities = probabilities
         self.n_members = len(probabilities)
+        self.context_cells = context_cells
 
     def predict_members(self, observed: np.ndarray, members: Sequence[int]) -> np.ndarray:
         return self.probabilities

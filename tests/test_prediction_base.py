@@ -13,7 +13,7 @@ from mapex.grid import (
     observed_to_probability,
     quantise_probability,
 )
-from mapex.prediction.base import EnsemblePrediction, Predictor, known_region
+from mapex.prediction.base import EnsemblePrediction, Predictor, known_region, with_context
 
 HALF_LEVEL = 1 / 510  # quantisation error bound of a member output
 
@@ -112,6 +112,42 @@ def test_predict_region_only_touches_the_region() -> None:
     np.testing.assert_array_equal(prediction.variance[~inside], 0.0)
     unknown_inside = inside & (observed == UNKNOWN)
     np.testing.assert_allclose(prediction.members[1][unknown_inside], 0.2, atol=HALF_LEVEL)
+
+
+class _EdgeMarkingMembers(Predictor):
+    """Predicts wall (1) on the border cells of whatever crop it is given, free (0) inside:
+    a network that mistakes a crop's edge for the map's border."""
+
+    name = "edges"
+    n_members = 2
+
+    def __init__(self, context_cells: int) -> None:
+        self.context_cells = context_cells
+
+    def predict_members(self, observed: np.ndarray, members) -> np.ndarray:
+        edges = np.ones(observed.shape, dtype=np.float32)
+        edges[1:-1, 1:-1] = 0.0
+        return np.repeat(edges[None], len(members), axis=0)
+
+
+@pytest.mark.parametrize("context_cells", [0, 1, 5, 100])
+def test_context_keeps_region_edges_inside_the_map_from_looking_like_the_border(
+    context_cells: int,
+) -> None:
+    observed = np.full((30, 40), UNKNOWN, dtype=np.uint8)
+    region = (0, 20, 10, 35)  # touches the map's top border only
+    prediction = _EdgeMarkingMembers(context_cells).predict(observed, region).main
+    inside = prediction[0:20, 10:35]
+    assert (inside[0] == 1.0).all()  # the real border is seen as one
+    interior_edges = np.concatenate([inside[-1], inside[1:, 0], inside[1:, -1]])
+    assert (interior_edges == 1.0).all() == (context_cells == 0)
+
+
+@pytest.mark.parametrize(
+    ("context", "expected"), [(0, (3, 9, 4, 8)), (2, (1, 11, 2, 10)), (9, (0, 12, 0, 10))]
+)
+def test_with_context_grows_and_clips(context: int, expected: tuple[int, int, int, int]) -> None:
+    assert with_context((3, 9, 4, 8), (12, 10), context) == expected
 
 
 def test_predict_main_is_member_zero_of_the_whole_map() -> None:

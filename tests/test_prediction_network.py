@@ -6,7 +6,7 @@ import torch
 
 from mapex.config import NetworkConfig
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
-from mapex.prediction.network import LamaGenerator, encode_observed
+from mapex.prediction.network import OUTSIDE_MAP, LamaGenerator, encode_observed
 
 SMALL = NetworkConfig(channels=16, n_blocks=1, downscale=4, refine_channels=4)
 
@@ -33,11 +33,11 @@ def test_default_network_on_a_large_map():
     assert logits.shape == (1, 1, 442, 1327) and torch.isfinite(logits).all()
 
 
-def test_padding_is_treated_as_unknown_not_as_free():
+def test_padding_is_treated_as_beyond_the_map_border():
     torch.manual_seed(0)
     net = LamaGenerator(SMALL).eval()
     observed = random_observed((10, 10))
-    padded = np.full((12, 12), UNKNOWN, dtype=np.uint8)
+    padded = np.full((12, 12), OUTSIDE_MAP, dtype=np.uint8)
     padded[:10, :10] = observed
     with torch.inference_mode():
         small = net(torch.from_numpy(encode_observed(observed))[None])
@@ -45,10 +45,13 @@ def test_padding_is_treated_as_unknown_not_as_free():
     torch.testing.assert_close(small, large[..., :10, :10])
 
 
-def test_encoding_is_one_hot():
-    encoded = encode_observed(random_observed((9, 11)))
+def test_encoding_is_one_hot_inside_the_map_and_zero_beyond_it():
+    observed = random_observed((9, 11))
+    observed[:, -2:] = OUTSIDE_MAP
+    encoded = encode_observed(observed)
     assert encoded.shape == (3, 9, 11)
-    np.testing.assert_array_equal(encoded.sum(axis=0), 1.0)
+    np.testing.assert_array_equal(encoded[:, :, :-2].sum(axis=0), 1.0)
+    np.testing.assert_array_equal(encoded[:, :, -2:], 0.0)
 
 
 def test_inference_is_deterministic():

@@ -1,5 +1,7 @@
 """A few-step training run (seconds), checkpoint/resume, and the data rules."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -12,6 +14,7 @@ from mapex.prediction.dataset import (
     explore_snapshots,
     training_world_specs,
 )
+from mapex.prediction.network import OUTSIDE_MAP
 from mapex.prediction.weights import load_member, read_metadata
 from mapex.worlds import load_world
 
@@ -44,11 +47,25 @@ def test_snapshots_are_partial_observations(snapshots):
 
 
 def test_crops_are_augmented_consistently(snapshots):
-    sampler = CropSampler(snapshots, 64, frontier_share=1.0, kth_share=0.3)
+    sampler = CropSampler(snapshots, dataclasses.replace(TINY, frontier_share=1.0))
     observed, walls, mask = sampler.sample(np.random.default_rng(0))
     assert observed.shape == walls.shape == mask.shape == (64, 64)
     assert (mask <= (observed == 1)).all()  # the loss only covers unknown cells
     assert not (walls.astype(bool) & (observed == 0)).any()  # free cells are never walls
+
+
+@pytest.mark.parametrize("overhang", [0, 16])
+def test_crops_hang_over_the_map_border_by_at_most_the_overhang(snapshots, overhang):
+    config = dataclasses.replace(TINY, frontier_share=0.0, edge_overhang_cells=overhang)
+    sampler = CropSampler(snapshots, config)
+    rng = np.random.default_rng(1)
+    outside_rows_or_cols = []
+    for _ in range(200):
+        observed, walls, mask = sampler.sample(rng)
+        outside = observed == OUTSIDE_MAP
+        assert not (mask.astype(bool) & outside).any() and not walls[outside].any()
+        outside_rows_or_cols.append(max(outside.all(axis=0).sum(), outside.all(axis=1).sum()))
+    assert max(outside_rows_or_cols) == overhang  # the map (>= 150 cells) fills 64-cell crops
 
 
 def test_a_few_training_steps_write_loadable_weights(snapshots, tmp_path):

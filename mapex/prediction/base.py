@@ -83,10 +83,16 @@ class EnsemblePrediction:
 
 
 class Predictor(ABC):
-    """An ensemble of map predictors; subclasses implement `predict_members`."""
+    """An ensemble of map predictors; subclasses implement `predict_members`.
+
+    `context_cells`: the members see this much more map around a region than they
+    are asked to predict, so that a region's edge inside the map does not look like
+    the map's border to them.
+    """
 
     name: str = "predictor"
     n_members: int = 4
+    context_cells: int = 0
 
     @abstractmethod
     def predict_members(self, observed: np.ndarray, members: Sequence[int]) -> np.ndarray:
@@ -106,13 +112,16 @@ class Predictor(ABC):
         """
         members = tuple(range(self.n_members)) if members is None else tuple(members)
         r0, r1, c0, c1 = region or (0, observed.shape[0], 0, observed.shape[1])
+        w0, w1, v0, v1 = with_context((r0, r1, c0, c1), observed.shape, self.context_cells)
         known_prob = observed_to_probability(observed)
         stacked = np.repeat(known_prob[None], len(members), axis=0)
-        crop = observed[r0:r1, c0:c1]
-        raw = self.predict_members(crop, members)
-        if raw.shape != (len(members), *crop.shape):
-            raise ValueError(f"{self.name}: members returned {raw.shape}, expected {crop.shape}")
+        view = observed[w0:w1, v0:v1]
+        raw = self.predict_members(view, members)
+        if raw.shape != (len(members), *view.shape):
+            raise ValueError(f"{self.name}: members returned {raw.shape}, expected {view.shape}")
+        raw = raw[:, r0 - w0 : r1 - w0, c0 - v0 : c1 - v0]
         raw = dequantise_probability(quantise_probability(raw))
+        crop = observed[r0:r1, c0:c1]
         unknown = crop == UNKNOWN
         stacked[:, r0:r1, c0:c1] = np.where(unknown[None], raw, known_prob[None, r0:r1, c0:c1])
         return EnsemblePrediction(stacked, region, members)
@@ -131,6 +140,17 @@ class Predictor(ABC):
     def predict_main(self, observed: np.ndarray) -> np.ndarray:
         """G's whole-map prediction with known cells copied through (what the metrics judge)."""
         return self.predict(observed, members=(0,)).main
+
+
+def with_context(region: Region, shape: tuple[int, int], context_cells: int) -> Region:
+    """`region` grown by `context_cells` on every side, clipped to a map of `shape`."""
+    r0, r1, c0, c1 = region
+    return (
+        max(r0 - context_cells, 0),
+        min(r1 + context_cells, shape[0]),
+        max(c0 - context_cells, 0),
+        min(c1 + context_cells, shape[1]),
+    )
 
 
 def known_region(observed: np.ndarray, margin_cells: int) -> Region:

@@ -19,6 +19,7 @@ from mapex.frontiers import frontier_cells
 from mapex.grid import UNKNOWN
 from mapex.methods import make_method
 from mapex.metrics import building_footprint
+from mapex.prediction.network import OUTSIDE_MAP
 from mapex.simulator import Simulator
 from mapex.worlds import World, load_world, start_poses
 
@@ -113,21 +114,21 @@ def collect_snapshots(
 class CropSampler:
     """Random training crops (input one-hot source, target walls, loss mask) from snapshots."""
 
-    def __init__(
-        self, snapshots: SnapshotSet, crop_cells: int, frontier_share: float, kth_share: float
-    ) -> None:
+    def __init__(self, snapshots: SnapshotSet, config: PredictorTrainingConfig) -> None:
         self.snapshots = snapshots
-        self.crop = crop_cells
-        self.frontier_share = frontier_share
-        self.probabilities = snapshot_probabilities(snapshots, kth_share)
+        self.crop = config.crop_cells
+        self.overhang = config.edge_overhang_cells
+        self.frontier_share = config.frontier_share
+        self.probabilities = snapshot_probabilities(snapshots, config.kth_share)
         margin = MetricsConfig().footprint_margin_cells
         self.footprints = [building_footprint(w.valid_space, margin) for w in snapshots.worlds]
 
     def sample(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One crop: observed codes (c, c) uint8, walls (c, c) float32, loss mask (c, c) float32.
 
-        The loss covers unknown cells inside the building footprint; padding beyond the
-        map is unknown and outside the loss.
+        The loss covers unknown cells inside the building footprint. A crop may hang over
+        the map's border by up to `edge_overhang_cells`: cells beyond it are `OUTSIDE_MAP`
+        and outside the loss.
         """
         index = int(rng.choice(len(self.snapshots.observed), p=self.probabilities))
         observed = self.snapshots.observed[index]
@@ -135,7 +136,7 @@ class CropSampler:
         world = self.snapshots.worlds[world_index]
         row, col = self._centre(observed, rng)
         window = self._window(observed.shape, row, col)
-        crop_observed = self._cut(observed, window, UNKNOWN)
+        crop_observed = self._cut(observed, window, OUTSIDE_MAP)
         walls = self._cut(world.occupancy, window, False).astype(np.float32)
         inside = self._cut(self.footprints[world_index], window, False)
         mask = (inside & (crop_observed == UNKNOWN)).astype(np.float32)
@@ -152,10 +153,15 @@ class CropSampler:
         return int(rng.integers(observed.shape[0])), int(rng.integers(observed.shape[1]))
 
     def _window(self, shape: tuple[int, int], row: int, col: int) -> tuple[int, int]:
-        """Top-left corner of a crop around (row, col), kept on the map where it fits."""
-        half = self.crop // 2
-        top = int(np.clip(row - half, min(0, shape[0] - self.crop), max(shape[0] - self.crop, 0)))
-        left = int(np.clip(col - half, min(0, shape[1] - self.crop), max(shape[1] - self.crop, 0)))
+        """Top-left corner of a crop around (row, col), over the map's border by at most
+        `overhang` cells (a map smaller than the crop lies wholly inside it)."""
+        half, crop, over = self.crop // 2, self.crop, self.overhang
+        top = int(
+            np.clip(row - half, min(0, shape[0] - crop) - over, max(shape[0] - crop, 0) + over)
+        )
+        left = int(
+            np.clip(col - half, min(0, shape[1] - crop) - over, max(shape[1] - crop, 0) + over)
+        )
         return top, left
 
     def _cut(self, array: np.ndarray, corner: tuple[int, int], fill) -> np.ndarray:

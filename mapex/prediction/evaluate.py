@@ -4,22 +4,26 @@ On validation maps (never trained on), observed maps are taken from nearest-fron
 runs at t = 100, 300, 600 from all 4 starts. For each, the occupied-class IoU over
 the *unknown* cells inside the building footprint (the part that is actually
 predicted) is measured for G, for the classical predictor and for "unknown = free",
-and the ensemble variance is scored as a detector of G's wrong cells (AUROC).
+and the ensemble variance is scored as a detector of G's wrong cells (AUROC). A second
+table splits both by distance from the known map: near it, walls continue what is seen;
+far from it, the predictor has to guess whole rooms.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 from scipy.stats import rankdata
 from tqdm import tqdm
 
-from mapex.config import ExplorationConfig
-from mapex.grid import UNKNOWN, observed_to_probability
+from mapex.config import ExplorationConfig, PredictorEvaluationConfig
+from mapex.grid import RESOLUTION_M, UNKNOWN, observed_to_probability
 from mapex.metrics import building_footprint, occupied_iou
 from mapex.plotting import occupancy_image, plt
 from mapex.prediction import make_predictor
@@ -30,20 +34,29 @@ from mapex.worlds import WorldError, load_world, start_poses
 
 KTH_DEV_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "kth_dev"
 VALIDATION_MAPS = ("50037764_PLAN1", "50052748")
-SNAPSHOT_TIMES = (100, 300, 600)
 
 
 @dataclass
-class SnapshotScore:
-    """Scores of one snapshot: IoUs over unknown footprint cells and the variance AUROC."""
+class CellScores:
+    """Scores over one set of cells: IoUs and the variance-vs-error AUROC."""
 
-    world: str
-    start: int
-    t: int
     iou_g: float
     iou_classical: float
     iou_unknown_free: float
     auroc: float
+
+
+@dataclass
+class SnapshotScore:
+    """Scores of one snapshot over all unknown footprint cells, and near / far from the
+    known map."""
+
+    world: str
+    start: int
+    t: int
+    all: CellScores
+    near: CellScores
+    far: CellScores
 
 
 def auroc(scores: np.ndarray, labels: np.ndarray) -> float:
@@ -56,16 +69,16 @@ def auroc(scores: np.ndarray, labels: np.ndarray) -> float:
     return float((ranks[labels].sum() - positives * (positives + 1) / 2) / (positives * negatives))
 
 
-def score_snapshot(
+def score_cells(
     truth: np.ndarray,
     cells: np.ndarray,
     learned: EnsemblePrediction,
     classical_main: np.ndarray,
     threshold: float,
-) -> tuple[float, float, float, float]:
-    """(IoU of G, IoU of classical, IoU of unknown = free, AUROC) over `cells` (bool)."""
+) -> CellScores:
+    """IoU of G, of classical and of unknown = free, and the AUROC, over `cells` (bool)."""
     wrong = (learned.main >= threshold) != truth
-    return (
+    return CellScores(
         occupied_iou(learned.main >= threshold, truth, cells),
         occupied_iou(classical_main >= threshold, truth, cells),
         occupied_iou(np.zeros_like(truth), truth, cells),
@@ -73,27 +86,40 @@ def score_snapshot(
     )
 
 
+def near_known(observed: np.ndarray, within_cells: int) -> np.ndarray:
+    """Cells (bool) at most `within_cells` (Euclidean) from a known cell."""
+    unknown = (observed == UNKNOWN).astype(np.uint8)
+    if unknown.all():
+        return np.zeros(observed.shape, dtype=bool)
+    return cv2.distanceTransform(unknown, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) <= within_cells
+
+
 def evaluate(
-    map_dirs: list[Path], times: tuple[int, ...], figure: Path | None
+    map_dirs: list[Path], settings: PredictorEvaluationConfig, figure: Path | None
 ) -> list[SnapshotScore]:
     """Score every (map, start, time) snapshot; optionally draw one of them."""
     learned, classical = make_predictor("lama"), make_predictor("classical")
     config = ExplorationConfig()
     threshold = config.metrics.prediction_threshold
+    times = settings.snapshot_times
     drawn = (map_dirs[-1], 0, times[len(times) // 2])  # which snapshot the figure shows
+    worlds = {map_dir: load_world(str(map_dir)) for map_dir in map_dirs}  # fail before any work
     scores = []
     jobs = [(d, s) for d in map_dirs for s in range(4)]
     for map_dir, start_index in tqdm(jobs, desc="exploring", unit="run"):
-        world = load_world(str(map_dir))
+        world = worlds[map_dir]
         footprint = building_footprint(world.valid_space, config.metrics.footprint_margin_cells)
         start = start_poses(world, config.world.start_clearance_cells)[start_index]
         snapshots, _ = snapshots_at(world, "nearest", start, list(times))
         for t in times:
             observed = snapshots[t]
             prediction = learned.predict(observed)
-            cells = (observed == UNKNOWN) & footprint
             classical_main = classical.predict_main(observed)
-            values = score_snapshot(world.occupancy, cells, prediction, classical_main, threshold)
+            cells = (observed == UNKNOWN) & footprint
+            near = near_known(observed, settings.near_known_cells)
+            split = [cells, cells & near, cells & ~near]
+            args = (world.occupancy, prediction, classical_main, threshold)
+            values = [score_cells(args[0], part, *args[1:]) for part in split]
             scores.append(SnapshotScore(world.name, start_index, t, *values))
             if figure is not None and (map_dir, start_index, t) == drawn:
                 draw_prediction(figure, world, observed, prediction, t)
@@ -130,18 +156,49 @@ def format_table(scores: list[SnapshotScore]) -> str:
         "| AUROC var vs error |",
         "|---|---|---|---|---|---|---|",
     ]
-    groups: dict[tuple[str, int], list[SnapshotScore]] = {}
-    for score in scores:
-        groups.setdefault((score.world, score.t), []).append(score)
-    for (world, t), group in [*groups.items(), (("all", "-"), scores)]:
-        g = np.mean([s.iou_g for s in group])
-        c = np.mean([s.iou_classical for s in group])
-        free = np.mean([s.iou_unknown_free for s in group])
-        area = np.nanmean([s.auroc for s in group])
+    for (world, t), group in _groups(scores):
+        g, c, free, area = _means([s.all for s in group])
         lines.append(
             f"| {world} | {t} | {g:.3f} | {c:.3f} | {free:.3f} | {g - c:+.3f} | {area:.3f} |"
         )
     return "\n".join(lines)
+
+
+def format_split_table(scores: list[SnapshotScore], near_known_cells: int) -> str:
+    """Markdown table: G's and classical IoU and the AUROC near / far from the known map."""
+    metres = near_known_cells * RESOLUTION_M
+    lines = [
+        f"Near (within {metres:g} m of a known cell) / far from the known map:",
+        "",
+        "| map | t | IoU G near / far | IoU classical near / far | AUROC near / far |",
+        "|---|---|---|---|---|",
+    ]
+    for (world, t), group in _groups(scores):
+        g_near, c_near, _, a_near = _means([s.near for s in group])
+        g_far, c_far, _, a_far = _means([s.far for s in group])
+        lines.append(
+            f"| {world} | {t} | {g_near:.3f} / {g_far:.3f} | {c_near:.3f} / {c_far:.3f} "
+            f"| {a_near:.3f} / {a_far:.3f} |"
+        )
+    return "\n".join(lines)
+
+
+def _groups(scores: list[SnapshotScore]) -> list[tuple[tuple[str, int | str], list]]:
+    """(map, t) groups in order, then ("all", "-") with every score."""
+    groups: dict[tuple[str, int | str], list[SnapshotScore]] = {}
+    for score in scores:
+        groups.setdefault((score.world, score.t), []).append(score)
+    return [*groups.items(), (("all", "-"), scores)]
+
+
+def _means(cells: list[CellScores]) -> tuple[float, float, float, float]:
+    """Mean IoUs (G, classical, unknown = free) and mean AUROC (NaNs skipped)."""
+    return (
+        float(np.mean([c.iou_g for c in cells])),
+        float(np.mean([c.iou_classical for c in cells])),
+        float(np.mean([c.iou_unknown_free for c in cells])),
+        float(np.nanmean([c.auroc for c in cells])),
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -155,15 +212,23 @@ def main(argv: list[str] | None = None) -> int:
         default=[KTH_DEV_DIR / name for name in VALIDATION_MAPS],
         help="KTH map directories (default: the two validation maps)",
     )
-    parser.add_argument("--times", nargs="+", type=int, default=list(SNAPSHOT_TIMES))
+    defaults = PredictorEvaluationConfig()
+    parser.add_argument(
+        "--times", nargs="+", type=int, default=list(defaults.snapshot_times), help="steps"
+    )
     parser.add_argument("--figure", type=Path, default=None, help="write a PNG of one snapshot")
     args = parser.parse_args(argv)
+    settings = dataclasses.replace(defaults, snapshot_times=tuple(sorted(set(args.times))))
+    if min(settings.snapshot_times) < 0:
+        parser.error("--times must be >= 0")
     try:
-        scores = evaluate(args.maps, tuple(sorted(args.times)), args.figure)
+        scores = evaluate(args.maps, settings, args.figure)
     except (WorldError, WeightsError) as error:
         print(f"mapex.prediction.evaluate: error: {error}", file=sys.stderr)
         return 2
     print(format_table(scores))
+    print()
+    print(format_split_table(scores, settings.near_known_cells))
     return 0
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mapex.config import NetworkConfig
 from mapex.prediction.base import Predictor
 from mapex.prediction.network import encode_observed
 from mapex.prediction.weights import MEMBER_NAMES, WEIGHTS_DIR, load_member
@@ -23,6 +24,7 @@ class LearnedEnsemble(Predictor):
     """Four trained generators; member 0 is G."""
 
     name = "lama"
+    context_cells = NetworkConfig().context_cells
 
     def __init__(
         self,

@@ -10,6 +10,10 @@ channels (pixel unshuffle), passes a stem convolution and `n_blocks` FFC residua
 blocks and is unfolded back (pixel shuffle) to one logit per cell; a small
 full-resolution refinement then aligns those logits with the observed walls. Any map
 size is accepted: it is padded to a multiple of `downscale` and cropped back.
+
+Cells beyond the map's border encode as all zeros (neither free, occupied nor
+unknown), so the network knows where the map ends: floor-plan maps are cropped
+to their building, and the outer wall runs along that border.
 """
 
 from __future__ import annotations
@@ -23,10 +27,13 @@ from mapex.config import NetworkConfig
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
 
 INPUT_CHANNELS = 3  # free, occupied, unknown (one-hot of the observed codes)
+OUTSIDE_MAP = np.uint8(255)  # not a map code: a cell beyond the map's border (all-zero encoding)
 
 
 def encode_observed(observed: np.ndarray) -> np.ndarray:
-    """Observed codes (rows, cols) -> float32 one-hot (3, rows, cols): free, occupied, unknown."""
+    """Observed codes (rows, cols) -> float32 one-hot (3, rows, cols): free, occupied, unknown.
+
+    Any other value (`OUTSIDE_MAP`) encodes as all zeros: beyond the map's border."""
     return np.stack([observed == FREE, observed == OCCUPIED, observed == UNKNOWN]).astype(
         np.float32
     )
@@ -139,9 +146,7 @@ class LamaGenerator(nn.Module):
         factor = self.config.downscale
         pad_rows, pad_cols = (-rows) % factor, (-cols) % factor
         if pad_rows or pad_cols:
-            x = F.pad(x, (0, pad_cols, 0, pad_rows))
-            x[:, 2, rows:, :] = 1.0  # padding is unknown space
-            x[:, 2, :, cols:] = 1.0
+            x = F.pad(x, (0, pad_cols, 0, pad_rows))  # zeros: beyond the map's border
         coarse = self.head(self.blocks(self.stem(x)))
         logits = coarse + self.refine(torch.cat([coarse, x], dim=1))
         return logits[..., :rows, :cols]

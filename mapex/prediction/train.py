@@ -93,7 +93,7 @@ def train_member(
         rng.bit_generator.state = state["numpy_rng"]
         torch.set_rng_state(state["torch_rng"])
         start, elapsed = state["step"], state["elapsed_s"]
-    sampler = CropSampler(data, config.crop_cells, config.frontier_share, config.kth_share)
+    sampler = CropSampler(data, config)
     model.train()
     began = time.perf_counter() - elapsed
     bar = tqdm(range(start, steps), initial=start, total=steps, desc=f"train {name}", unit="step")

@@ -1,0 +1,76 @@
+"""The predictor evaluation: AUROC, near/far split, per-cell scores, tables, CLI errors."""
+
+import numpy as np
+import pytest
+
+from mapex.grid import FREE, UNKNOWN
+from mapex.prediction.base import EnsemblePrediction
+from mapex.prediction.evaluate import (
+    CellScores,
+    SnapshotScore,
+    auroc,
+    format_split_table,
+    format_table,
+    main,
+    near_known,
+    score_cells,
+)
+
+
+@pytest.mark.parametrize(
+    ("scores", "labels", "expected"),
+    [
+        ([0.1, 0.2, 0.8, 0.9], [False, False, True, True], 1.0),
+        ([0.9, 0.8, 0.2, 0.1], [False, False, True, True], 0.0),
+        ([0.5, 0.5, 0.5, 0.5], [False, True, False, True], 0.5),
+        ([0.1, 0.4, 0.35, 0.8], [False, False, True, True], 0.75),
+    ],
+)
+def test_auroc_counts_correctly_ordered_pairs(scores, labels, expected):
+    assert auroc(np.array(scores), np.array(labels)) == pytest.approx(expected)
+
+
+def test_auroc_without_both_classes_is_nan():
+    assert np.isnan(auroc(np.array([0.1, 0.2]), np.array([True, True])))
+
+
+def test_near_known_is_a_distance_band_around_known_cells():
+    observed = np.full((1, 20), UNKNOWN, dtype=np.uint8)
+    observed[0, 0] = FREE
+    near = near_known(observed, 3)
+    np.testing.assert_array_equal(np.flatnonzero(near[0]), [0, 1, 2, 3])
+    assert not near_known(np.full((4, 4), UNKNOWN, dtype=np.uint8), 3).any()
+
+
+def test_score_cells_judges_g_classical_and_unknown_free_on_the_same_cells():
+    truth = np.array([[True, True, False, False]])
+    cells = np.array([[True, True, True, False]])
+    g = np.array([[0.9, 0.1, 0.1, 0.9]], dtype=np.float32)  # right, wrong, right, outside
+    members = np.stack([g, np.array([[0.9, 0.7, 0.1, 0.9]], dtype=np.float32)])
+    classical = np.array([[0.9, 0.9, 0.9, 0.0]], dtype=np.float32)
+    scores = score_cells(truth, cells, EnsemblePrediction(members), classical, 0.5)
+    assert scores.iou_g == pytest.approx(1 / 2)
+    assert scores.iou_classical == pytest.approx(2 / 3)
+    assert scores.iou_unknown_free == 0.0
+    assert scores.auroc == 1.0  # the members disagree exactly where G is wrong
+
+
+def _score(world: str, t: int, g: float, classical: float) -> SnapshotScore:
+    cells = CellScores(g, classical, 0.0, 0.6)
+    return SnapshotScore(world, 0, t, cells, cells, CellScores(g / 2, 0.0, 0.0, 0.5))
+
+
+def test_tables_have_a_row_per_map_and_time_and_an_overall_mean():
+    scores = [_score("a", 100, 0.4, 0.2), _score("a", 100, 0.2, 0.2), _score("b", 300, 0.6, 0.3)]
+    table = format_table(scores).splitlines()
+    assert table[2] == "| a | 100 | 0.300 | 0.200 | 0.000 | +0.100 | 0.600 |"
+    assert table[-1].startswith("| all | - | 0.400 | 0.233 |")
+    split = format_split_table(scores, 10).splitlines()
+    assert "within 1 m" in split[0]
+    assert split[5] == "| b | 300 | 0.600 / 0.300 | 0.300 / 0.000 | 0.600 / 0.500 |"
+
+
+def test_a_missing_map_is_a_one_line_error(tmp_path, capsys):
+    assert main(["--maps", str(tmp_path / "nowhere")]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("mapex.prediction.evaluate: error:") and "\n" not in error
