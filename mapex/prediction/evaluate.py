@@ -118,8 +118,10 @@ def evaluate(
             cells = (observed == UNKNOWN) & footprint
             near = near_known(observed, settings.near_known_cells)
             split = [cells, cells & near, cells & ~near]
-            args = (world.occupancy, prediction, classical_main, threshold)
-            values = [score_cells(args[0], part, *args[1:]) for part in split]
+            values = [
+                score_cells(world.occupancy, part, prediction, classical_main, threshold)
+                for part in split
+            ]
             scores.append(SnapshotScore(world.name, start_index, t, *values))
             if figure is not None and (map_dir, start_index, t) == drawn:
                 draw_prediction(figure, world, observed, prediction, t)
