@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+import re
 import socket
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 STOP_DEADLINE_S = 5.0  # SIGINT to exit (DESIGN.md)
+ROUTER_START_DEADLINE_S = 60.0  # a cold interpreter on a loaded machine; the start takes seconds
+ROUTER_READY = re.compile(r"router ([0-9a-f]+) listening on")
 
 
 def free_loopback_port() -> int:
@@ -68,3 +72,43 @@ class ServiceProcesses:
             if process.poll() is None:
                 process.kill()
             process.wait(STOP_DEADLINE_S)
+
+
+@dataclass
+class RouterProcess:
+    """A `python -m deploy.router` process and where it logs."""
+
+    process: subprocess.Popen
+    log_path: Path
+    endpoint: str
+    zid: str = ""
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+
+def spawn_router(log_dir: Path, endpoint: str) -> RouterProcess:
+    """Start `python -m deploy.router --listen endpoint` (call `wait_router_ready` next)."""
+    log_path = log_dir / f"router-{endpoint.rsplit(':', 1)[1]}.log"
+    command = [sys.executable, "-m", "deploy.router", "--listen", endpoint]
+    with open(log_path, "wb") as log:
+        process = subprocess.Popen(command, cwd=REPO_ROOT, stdout=log, stderr=log)
+    return RouterProcess(process, log_path, endpoint)
+
+
+def wait_router_ready(router: RouterProcess) -> None:
+    """Wait for the 'listening' line (the signal handlers are installed before it), so that
+    clients started next can connect."""
+
+    def listening():
+        if router.process.poll() is not None:
+            pytest.fail(f"the router exited early:\n{router.log()}")
+        return ROUTER_READY.search(router.log())
+
+    router.zid = until(listening, "the router to listen", ROUTER_START_DEADLINE_S).group(1)
+
+
+def kill_router(router: RouterProcess) -> None:
+    if router.process.poll() is None:
+        router.process.kill()
+    router.process.wait(STOP_DEADLINE_S)

@@ -10,11 +10,19 @@ import signal
 import subprocess
 import sys
 import threading
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from service_processes import REPO_ROOT, STOP_DEADLINE_S, free_loopback_port, until
+from service_processes import (
+    REPO_ROOT,
+    ROUTER_START_DEADLINE_S,
+    STOP_DEADLINE_S,
+    free_loopback_port,
+    kill_router,
+    spawn_router,
+    until,
+    wait_router_ready,
+)
 
 import services.predictor
 from deploy import router as deploy_router
@@ -30,56 +38,18 @@ from services.zenoh_config import ZenohConfigError, open_session, zenoh_config
 
 DEPLOY_DIR = REPO_ROOT / "deploy"
 HUB = ServicesConfig().hub_endpoint
-START_DEADLINE_S = 60.0  # a cold interpreter on a loaded machine; the start takes seconds
 EXCHANGE_DEADLINE_S = 10.0  # declarations propagate asynchronously; milliseconds when idle
-READY = re.compile(r"router ([0-9a-f]+) listening on")
-
-
-@dataclass
-class RouterProcess:
-    process: subprocess.Popen
-    log_path: Path
-    endpoint: str
-    zid: str = ""
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace")
-
-
-def _spawn_router(log_dir: Path, endpoint: str) -> RouterProcess:
-    log_path = log_dir / f"router-{endpoint.rsplit(':', 1)[1]}.log"
-    command = [sys.executable, "-m", "deploy.router", "--listen", endpoint]
-    with open(log_path, "wb") as log:
-        process = subprocess.Popen(command, cwd=REPO_ROOT, stdout=log, stderr=log)
-    return RouterProcess(process, log_path, endpoint)
-
-
-def _wait_ready(router: RouterProcess) -> None:
-    """Wait for the 'listening' line (the signal handlers are installed before it)."""
-
-    def listening():
-        if router.process.poll() is not None:
-            pytest.fail(f"the router exited early:\n{router.log()}")
-        return READY.search(router.log())
-
-    router.zid = until(listening, "the router to listen", START_DEADLINE_S).group(1)
-
-
-def _kill(router: RouterProcess) -> None:
-    if router.process.poll() is None:
-        router.process.kill()
-    router.process.wait(STOP_DEADLINE_S)
 
 
 @pytest.fixture(scope="module")
 def router(tmp_path_factory):
     """A `python -m deploy.router` process on a free loopback port."""
-    started = _spawn_router(tmp_path_factory.mktemp("router"), _free_endpoint())
+    started = spawn_router(tmp_path_factory.mktemp("router"), _free_endpoint())
     try:
-        _wait_ready(started)
+        wait_router_ready(started)
         yield started
     finally:
-        _kill(started)
+        kill_router(started)
 
 
 def _free_endpoint() -> str:
@@ -166,9 +136,9 @@ def test_a_peer_on_another_port_and_a_client_reach_each_other(router):
 
 
 def test_sigint_stops_the_router_cleanly(tmp_path):
-    started = _spawn_router(tmp_path, _free_endpoint())
+    started = spawn_router(tmp_path, _free_endpoint())
     try:
-        _wait_ready(started)
+        wait_router_ready(started)
         client = _client(started.endpoint)
         client_zid = str(client.info.zid())
         until(lambda: f"client {client_zid} joined" in started.log(), "the join line", 10.0)
@@ -177,7 +147,7 @@ def test_sigint_stops_the_router_cleanly(tmp_path):
         assert started.process.wait(STOP_DEADLINE_S) == 0, started.log()
         assert "router stopped" in started.log()
     finally:
-        _kill(started)
+        kill_router(started)
 
 
 @pytest.mark.parametrize("endpoint", ["tcp127.0.0.1:7447", "in use"])
@@ -185,7 +155,9 @@ def test_an_unusable_listen_endpoint_is_one_line_and_exit_2(endpoint, router):
     endpoint = router.endpoint if endpoint == "in use" else endpoint
     command = [sys.executable, "-m", "deploy.router", "--listen", endpoint]
     try:
-        done = subprocess.run(command, cwd=REPO_ROOT, capture_output=True, timeout=START_DEADLINE_S)
+        done = subprocess.run(
+            command, cwd=REPO_ROOT, capture_output=True, timeout=ROUTER_START_DEADLINE_S
+        )
     except subprocess.TimeoutExpired:
         pytest.fail(f"the router did not refuse {endpoint}")
     lines = done.stderr.decode(errors="replace").strip().splitlines()

@@ -17,7 +17,15 @@ import msgpack
 import numpy as np
 import pytest
 import torch
-from service_processes import REPO_ROOT, STOP_DEADLINE_S, free_loopback_port, until
+from service_processes import (
+    REPO_ROOT,
+    STOP_DEADLINE_S,
+    free_loopback_port,
+    kill_router,
+    spawn_router,
+    until,
+    wait_router_ready,
+)
 from up_processes import UpProcess, pid_alive, read_run
 
 from mapex.config import ExplorationConfig
@@ -145,11 +153,12 @@ def test_ctrl_c_leaves_no_process_behind(tmp_path):
 
 def test_services_joined_only_through_a_router_run_an_episode(tmp_path):
     router_endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-    router_log = open(tmp_path / "router.log", "wb")  # noqa: SIM115
-    router = subprocess.Popen(
-        [sys.executable, "-m", "deploy.router", "--listen", router_endpoint],
-        cwd=REPO_ROOT, stdout=router_log, stderr=router_log,
-    )  # fmt: skip
+    router = spawn_router(tmp_path, router_endpoint)
+    try:
+        wait_router_ready(router)  # a client that finds no router gives up at once
+    except BaseException:
+        kill_router(router)
+        raise
     up = UpProcess(
         tmp_path / "routed.log", "--world", WORLD, "--mode", "client", "--connect",
         router_endpoint, "--run-prefix", "routed", "--out", str(tmp_path / "runs"),
@@ -159,9 +168,9 @@ def test_services_joined_only_through_a_router_run_an_episode(tmp_path):
         assert up.wait() == 0, up.log()
     finally:
         up.kill()
-        router.send_signal(signal.SIGINT)
-        router.wait(STOP_DEADLINE_S)
-        router_log.close()
+        router.process.send_signal(signal.SIGINT)
+        router.process.wait(STOP_DEADLINE_S)
+        kill_router(router)
     metrics, trajectory, _ = read_run(tmp_path / "runs" / "routed-0-r0")
     assert len(trajectory) == 61 and metrics["degraded_steps"] == []
 
