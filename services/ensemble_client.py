@@ -27,7 +27,6 @@ from mapex.prediction.base import (
     EnsemblePrediction,
     Predictor,
     Region,
-    with_context,
 )
 from services.codec import DEFAULT_SERVICES, ProtocolError
 from services.keys import AliveKey, alive_predictor_pattern, parse_key, predict_key
@@ -274,9 +273,8 @@ class ZenohEnsemble(Predictor):
         return self._assemble(observed, region, answers), answers
 
     def _members_view(self, observed: np.ndarray, region: Region | None) -> np.ndarray:
-        """The crop the workers predict: `region` with `context_cells` of map around it."""
-        full = (0, observed.shape[0], 0, observed.shape[1])
-        r0, r1, c0, c1 = with_context(region or full, observed.shape, self.context_cells)
+        """The crop the workers predict (`Predictor.members_window`)."""
+        r0, r1, c0, c1 = self.members_window(observed.shape, region)
         return observed[r0:r1, c0:c1]
 
     def _assemble(

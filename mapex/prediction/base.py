@@ -112,7 +112,7 @@ class Predictor(ABC):
         """
         members = tuple(range(self.n_members)) if members is None else tuple(members)
         r0, r1, c0, c1 = region or (0, observed.shape[0], 0, observed.shape[1])
-        w0, w1, v0, v1 = with_context((r0, r1, c0, c1), observed.shape, self.context_cells)
+        w0, w1, v0, v1 = self.members_window(observed.shape, region)
         known_prob = observed_to_probability(observed)
         stacked = np.repeat(known_prob[None], len(members), axis=0)
         view = observed[w0:w1, v0:v1]
@@ -125,6 +125,11 @@ class Predictor(ABC):
         unknown = crop == UNKNOWN
         stacked[:, r0:r1, c0:c1] = np.where(unknown[None], raw, known_prob[None, r0:r1, c0:c1])
         return EnsemblePrediction(stacked, region, members)
+
+    def members_window(self, shape: tuple[int, int], region: Region | None) -> Region:
+        """The part of a map of `shape` the members see to predict `region` (whole map if
+        None): the region with `context_cells` of map around it."""
+        return with_context(region or (0, shape[0], 0, shape[1]), shape, self.context_cells)
 
     def predict_later(
         self,

@@ -69,7 +69,7 @@ def _check_member(member: InpaintMemberConfig) -> None:
 def inpaint_member(observed: np.ndarray, member: InpaintMemberConfig) -> np.ndarray:
     """One member's float32 wall probability (rows, cols) in [0, 1] for `observed`."""
     walls, unknown = _working_scale_maps(observed, member.scale)
-    in_band = unknown & (_distance_to_known(unknown) * member.scale <= member.band_cells)
+    in_band = unknown & (distance_to_known(unknown) * member.scale <= member.band_cells)
     probability = np.where(unknown & ~in_band, np.float32(member.prior), walls)
     painted = cv2.inpaint(
         probability, in_band.view(np.uint8), member.radius_cells, _CV_METHODS[member.method]
@@ -93,7 +93,7 @@ def _working_scale_maps(observed: np.ndarray, scale: int) -> tuple[np.ndarray, n
     return walls, unknown
 
 
-def _distance_to_known(unknown: np.ndarray) -> np.ndarray:
+def distance_to_known(unknown: np.ndarray) -> np.ndarray:
     """Distance (working cells, 5x5-mask approximation of Euclidean) to the nearest known cell.
 
     With no known cell at all every distance is huge, so everything is beyond the band.

@@ -17,7 +17,6 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 from scipy.stats import rankdata
 from tqdm import tqdm
@@ -28,6 +27,7 @@ from mapex.metrics import building_footprint, occupied_iou
 from mapex.plotting import occupancy_image, plt
 from mapex.prediction import make_predictor
 from mapex.prediction.base import EnsemblePrediction
+from mapex.prediction.classical import distance_to_known
 from mapex.prediction.dataset import snapshots_at
 from mapex.prediction.weights import WeightsError
 from mapex.worlds import WorldError, load_world, start_poses
@@ -88,10 +88,7 @@ def score_cells(
 
 def near_known(observed: np.ndarray, within_cells: int) -> np.ndarray:
     """Cells (bool) at most `within_cells` (Euclidean) from a known cell."""
-    unknown = (observed == UNKNOWN).astype(np.uint8)
-    if unknown.all():
-        return np.zeros(observed.shape, dtype=bool)
-    return cv2.distanceTransform(unknown, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) <= within_cells
+    return distance_to_known(observed == UNKNOWN) <= within_cells
 
 
 def evaluate(
