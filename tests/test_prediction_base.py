@@ -42,8 +42,12 @@ def _random_observed(shape: tuple[int, int], seed: int) -> np.ndarray:
     ("values", "mean", "variance"),
     [([0.0, 1.0], 0.5, 0.5), ([0.2, 0.4, 0.6], 0.4, 0.04), ([0.3, 0.3, 0.3, 0.3], 0.3, 0.0)],
 )
-def test_mean_and_unbiased_variance(values: list[float], mean: float, variance: float) -> None:
-    members = np.array(values, dtype=np.float32)[:, None, None] * np.ones((1, 2, 3), np.float32)
+def test_mean_and_unbiased_variance_over_the_members_but_not_g(
+    values: list[float], mean: float, variance: float
+) -> None:
+    """G (row 0, here 0.9) is P_t; M_t and V_t are over G_1..G_n only (SPEC §4)."""
+    rows = np.array([0.9, *values], dtype=np.float32)
+    members = rows[:, None, None] * np.ones((1, 2, 3), np.float32)
     prediction = EnsemblePrediction(members)
     assert prediction.mean.dtype == np.float32 and prediction.variance.dtype == np.float32
     np.testing.assert_allclose(prediction.mean, mean, atol=1e-6)
@@ -51,17 +55,19 @@ def test_mean_and_unbiased_variance(values: list[float], mean: float, variance: 
     np.testing.assert_array_equal(prediction.main, members[0])
 
 
-def test_variance_of_a_single_member_is_zero() -> None:
-    prediction = EnsemblePrediction(np.full((1, 4, 5), 0.7, dtype=np.float32))
+@pytest.mark.parametrize("rows", [1, 2])  # G alone; G and one member
+def test_variance_of_fewer_than_two_members_is_zero(rows: int) -> None:
+    prediction = EnsemblePrediction(np.full((rows, 4, 5), 0.7, dtype=np.float32))
     np.testing.assert_array_equal(prediction.variance, np.zeros((4, 5), np.float32))
     np.testing.assert_allclose(prediction.mean, 0.7)
+    assert not prediction.has_variance
 
 
 def test_variance_matches_numpy_ddof_one_per_cell() -> None:
     members = np.random.default_rng(3).random((4, 6, 7)).astype(np.float32)
     prediction = EnsemblePrediction(members)
-    np.testing.assert_allclose(prediction.variance, np.var(members, axis=0, ddof=1), rtol=1e-5)
-    np.testing.assert_allclose(prediction.mean, members.mean(axis=0), rtol=1e-6)
+    np.testing.assert_allclose(prediction.variance, np.var(members[1:], axis=0, ddof=1), rtol=1e-5)
+    np.testing.assert_allclose(prediction.mean, members[1:].mean(axis=0), rtol=1e-6)
 
 
 def test_predict_whole_map_copies_known_cells_and_fills_unknown_ones() -> None:
@@ -76,7 +82,7 @@ def test_predict_whole_map_copies_known_cells_and_fills_unknown_ones() -> None:
         np.testing.assert_array_equal(member[known], observed[known] / 2)
         np.testing.assert_allclose(member[~known], (i + 1) / 10, atol=HALF_LEVEL)
     np.testing.assert_array_equal(prediction.variance[known], 0.0)
-    np.testing.assert_allclose(prediction.variance[~known], 0.01, atol=1e-3)
+    np.testing.assert_allclose(prediction.variance[~known], 0.005, atol=1e-3)  # 0.2 and 0.3
     assert prediction.answered == (0, 1, 2)
 
 
@@ -94,8 +100,11 @@ def test_member_outputs_are_quantised_to_the_wire_levels() -> None:
 def test_answered_names_the_requested_members_in_order() -> None:
     observed = _random_observed((4, 4), seed=6)
     prediction = _ConstantMembers(n_members=4).predict(observed, members=(2, 0))
-    assert prediction.answered == (2, 0) and prediction.has_variance
-    assert not EnsemblePrediction(prediction.members[:1]).has_variance
+    assert prediction.answered == (2, 0) and not prediction.has_variance  # one of G_1..G_n
+    np.testing.assert_allclose(prediction.mean[observed == UNKNOWN], 0.3, atol=HALF_LEVEL)
+    both = _ConstantMembers(n_members=4).predict(observed, members=(3, 0, 1))
+    assert both.has_variance
+    np.testing.assert_allclose(both.mean[observed == UNKNOWN], 0.3, atol=HALF_LEVEL)  # 0.4, 0.2
 
 
 def test_predict_region_only_touches_the_region() -> None:
@@ -183,5 +192,5 @@ def test_region_prediction_matches_whole_map_statistics_inside_the_region():
     np.testing.assert_allclose(prediction.mean, reference.mean, atol=1e-6)
     np.testing.assert_allclose(prediction.variance, reference.variance, atol=1e-6)
     np.testing.assert_allclose(
-        reference.variance, prediction.members.var(axis=0, ddof=1), atol=1e-6
+        reference.variance, prediction.members[1:].var(axis=0, ddof=1), atol=1e-6
     )

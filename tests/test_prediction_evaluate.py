@@ -46,13 +46,15 @@ def test_score_cells_judges_g_classical_and_unknown_free_on_the_same_cells():
     truth = np.array([[True, True, False, False]])
     cells = np.array([[True, True, True, False]])
     g = np.array([[0.9, 0.1, 0.1, 0.9]], dtype=np.float32)  # right, wrong, right, outside
-    members = np.stack([g, np.array([[0.9, 0.7, 0.1, 0.9]], dtype=np.float32)])
+    g1 = np.array([[0.9, 0.7, 0.1, 0.9]], dtype=np.float32)
+    g2 = np.array([[0.9, 0.1, 0.1, 0.9]], dtype=np.float32)
+    members = np.stack([g, g1, g2])
     classical = np.array([[0.9, 0.9, 0.9, 0.0]], dtype=np.float32)
     scores = score_cells(truth, cells, EnsemblePrediction(members), classical, 0.5)
     assert scores.iou_g == pytest.approx(1 / 2)
     assert scores.iou_classical == pytest.approx(2 / 3)
     assert scores.iou_unknown_free == 0.0
-    assert scores.auroc == 1.0  # the members disagree exactly where G is wrong
+    assert scores.auroc == 1.0  # G_1 and G_2 disagree exactly where G is wrong
 
 
 def _score(world: str, t: int, g: float, classical: float) -> SnapshotScore:

@@ -31,11 +31,14 @@ MEMBER_NAMES = ("g", "g1", "g2", "g3")  # ensemble members by index; member 0 is
 class EnsemblePrediction:
     """Member predictions, float32 (n_members, rows, cols); member 0 is G.
 
-    Only `region` was predicted: outside it every member holds the observed map,
-    so the mean is that map and the variance is zero there. `member_ids` names the
-    member of each row (None: rows 0..n-1 are members 0..n-1). A distributed pool
-    may answer with fewer members than asked (DESIGN.md, Reliability); then
-    `member_ids` says which, and row 0 is G only if G answered.
+    P_t is G's row; M_t and V_t are the mean and variance over G_1..G_n only, as in
+    the paper (SPEC §4): G, trained on all the data, is not one of the members whose
+    disagreement measures the uncertainty. Only `region` was predicted: outside it
+    every member holds the observed map, so the mean is that map and the variance
+    is zero there. `member_ids` names the member of each row (None: rows 0..n-1 are
+    members 0..n-1). A distributed pool may answer with fewer members than asked
+    (DESIGN.md, Reliability); then `member_ids` says which, and row 0 is G only if G
+    answered.
     """
 
     members: np.ndarray
@@ -49,8 +52,8 @@ class EnsemblePrediction:
 
     @property
     def has_variance(self) -> bool:
-        """Whether enough members answered for a variance (at least two)."""
-        return len(self.members) >= 2
+        """Whether enough of G_1..G_n answered for a variance (at least two)."""
+        return len(self._ensemble_rows()) >= 2
 
     @property
     def main(self) -> np.ndarray:
@@ -59,23 +62,29 @@ class EnsemblePrediction:
 
     @cached_property
     def mean(self) -> np.ndarray:
-        """M_t, the mean over members."""
+        """M_t, the mean over G_1..G_n (G's prediction when none of them answered)."""
+        rows = self._ensemble_rows() or list(range(len(self.members)))
         mean = self.members[0].copy()
         window = self._window()
-        mean[window] = self.members[(slice(None), *window)].mean(axis=0, dtype=np.float32)
+        mean[window] = self.members[(rows, *window)].mean(axis=0, dtype=np.float32)
         return mean
 
     @cached_property
     def variance(self) -> np.ndarray:
-        """V_t, the unbiased variance over members (zeros with fewer than two)."""
+        """V_t, the unbiased variance over G_1..G_n (zeros with fewer than two)."""
         variance = np.zeros(self.members.shape[1:], dtype=np.float32)
-        if len(self.members) >= 2:
+        rows = self._ensemble_rows()
+        if len(rows) >= 2:
             window = self._window()
-            deviations = self.members[(slice(None), *window)] - self.mean[window]
+            deviations = self.members[(rows, *window)] - self.mean[window]
             variance[window] = np.einsum("kij,kij->ij", deviations, deviations) / np.float32(
-                len(self.members) - 1
+                len(rows) - 1
             )
         return variance
+
+    def _ensemble_rows(self) -> list[int]:
+        """The rows holding G_1..G_n."""
+        return [row for row, member in enumerate(self.answered) if member != 0]
 
     def _window(self) -> tuple[slice, slice]:
         r0, r1, c0, c1 = self.region or (0, self.members.shape[1], 0, self.members.shape[2])
