@@ -107,7 +107,8 @@ class PredictorTrainingConfig:
     edge_overhang_cells: int = 64  # how far a crop may hang over the map's border
     batch_size: int = 8
     main_steps: int = 2500  # G, on all data
-    member_steps: int = 1000  # G_1..G_3, each on a third of the worlds
+    member_steps: int = 600  # G_1..G_3, each fine-tuning G on a third of the worlds
+    members_from_main: bool = True  # G_1..G_3 fine-tune G (the paper's fine-tune one LaMa)
     learning_rate: float = 2e-3
     weight_decay: float = 1e-4
     wall_weight: float = 2.0  # BCE weight of wall cells (walls are the rarer class)

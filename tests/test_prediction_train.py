@@ -15,7 +15,7 @@ from mapex.prediction.dataset import (
     training_world_specs,
 )
 from mapex.prediction.network import OUTSIDE_MAP
-from mapex.prediction.weights import load_member, read_metadata
+from mapex.prediction.weights import WeightsError, load_member, read_metadata
 from mapex.worlds import load_world
 
 SMALL = NetworkConfig(channels=16, n_blocks=1, downscale=4, refine_channels=4)
@@ -112,3 +112,30 @@ def test_members_train_on_disjoint_worlds():
     seen = [set(train.member_snapshots(data, k).world_of) for k in (1, 2, 3)]
     assert seen == [{0}, {1}, {2}]
     assert set(train.member_snapshots(data, 0).world_of) == {0, 1, 2}
+
+
+def test_members_start_from_the_trained_main_model(snapshots, tmp_path):
+    main = load_member(
+        train.train_member(0, snapshots, TINY, SMALL, torch.device("cpu"), tmp_path, False)
+    )
+    member = train._initial_model(1, SMALL, TINY, tmp_path)
+    for key, value in main.state_dict().items():
+        torch.testing.assert_close(member.state_dict()[key], value, rtol=0, atol=0)
+    assert member.training  # ready to be fine-tuned
+    fresh = train._initial_model(
+        1, SMALL, dataclasses.replace(TINY, members_from_main=False), tmp_path
+    )
+    weight = "stem.1.weight"
+    assert not torch.equal(fresh.state_dict()[weight], main.state_dict()[weight])
+
+
+def test_a_member_without_a_trained_main_model_is_refused(tmp_path):
+    with pytest.raises(WeightsError, match="no weights file"):
+        train._initial_model(2, SMALL, TINY, tmp_path)
+
+
+def test_a_main_model_of_another_size_is_refused(snapshots, tmp_path):
+    train.train_member(0, snapshots, TINY, SMALL, torch.device("cpu"), tmp_path, False)
+    other = dataclasses.replace(SMALL, channels=8)
+    with pytest.raises(ValueError, match="another network size"):
+        train._initial_model(3, other, TINY, tmp_path)

@@ -29,7 +29,7 @@ from mapex.prediction.dataset import (
     training_world_specs,
 )
 from mapex.prediction.network import LamaGenerator, encode_observed
-from mapex.prediction.weights import MEMBER_NAMES, WEIGHTS_DIR, save_weights
+from mapex.prediction.weights import MEMBER_NAMES, WEIGHTS_DIR, load_member, save_weights
 from mapex.worlds import WorldError
 
 DEFAULT_KTH_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "kth_dev"
@@ -76,7 +76,7 @@ def train_member(
     data = member_snapshots(snapshots, member)
     torch.manual_seed(config.seed + member)
     rng = np.random.default_rng(config.seed + member)
-    model = LamaGenerator(network).to(device)
+    model = _initial_model(member, network, config, out_dir).to(device)
     optimizer = torch.optim.AdamW(
         model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
     )
@@ -118,6 +118,22 @@ def train_member(
         "training_wall_time_s": round(time.perf_counter() - began, 1),
     }
     return save_weights(out_dir / f"{name}.pt", model, metadata)
+
+
+def _initial_model(
+    member: int, network: NetworkConfig, config: PredictorTrainingConfig, out_dir: Path
+) -> LamaGenerator:
+    """A fresh network; for G_1..G_3 with `members_from_main`, G's trained weights from `out_dir`.
+
+    Starting every member from one trained G, as the paper starts them from one
+    pretrained LaMa, makes them differ where their data subsets disagree rather
+    than wherever an undertrained network guesses differently."""
+    if member == 0 or not config.members_from_main:
+        return LamaGenerator(network)
+    main = load_member(out_dir / f"{MEMBER_NAMES[0]}.pt")
+    if main.config != network:
+        raise ValueError(f"{out_dir / MEMBER_NAMES[0]}.pt was built for another network size")
+    return main.train()
 
 
 def _save_checkpoint(path, model, optimizer, schedule, rng, step: int, began: float) -> None:
