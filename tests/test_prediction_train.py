@@ -139,3 +139,13 @@ def test_a_main_model_of_another_size_is_refused(snapshots, tmp_path):
     other = dataclasses.replace(SMALL, channels=8)
     with pytest.raises(ValueError, match="another network size"):
         train._initial_model(3, other, TINY, tmp_path)
+
+
+def test_members_without_g_are_refused_before_any_work(tmp_path, capsys):
+    status = train.main(["--members", "g2,g3", "--out", str(tmp_path), "--no-kth"])
+    error = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and error == [
+        "mapex.prediction.train: error: g2, g3 would start from G's weights, "
+        f"but there is no {tmp_path / 'g.pt'}: train g too (--members g,g1,g2,g3) "
+        "or --set members_from_main=false"
+    ]  # one line, and no snapshots were collected

@@ -191,6 +191,7 @@ def main(argv: list[str] | None = None) -> int:
         device = _device(args.device)
         if args.threads:
             torch.set_num_threads(args.threads)
+        _check_main_for_members(members, config, args.out)
         kth_dirs = [] if args.no_kth else [str(args.kth_dir / m) for m in TRAINING_KTH_MAPS]
         specs = training_world_specs(config, kth_dirs)
         print(f"collecting snapshots from {len(specs)} worlds ...", file=sys.stderr)
@@ -204,6 +205,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mapex.prediction.train: error: {error}", file=sys.stderr)
         return 2
     return 0
+
+
+def _check_main_for_members(members: list[int], config: PredictorTrainingConfig, out: Path) -> None:
+    """Refuse, before any work, members that would start from a G this run has not got."""
+    main = out / f"{MEMBER_NAMES[0]}.pt"
+    if config.members_from_main and 0 not in members and any(members) and not main.exists():
+        raise ValueError(
+            f"{', '.join(MEMBER_NAMES[k] for k in members)} would start from G's weights, "
+            f"but there is no {main}: train g too (--members {','.join(MEMBER_NAMES)}) "
+            "or --set members_from_main=false"
+        )
 
 
 def _member_names(text: str) -> list[str]:
