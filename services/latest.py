@@ -6,13 +6,17 @@ latest payload; a queryable on exactly that key answers a `get` with it, so a vi
 mid-run (`services.watch`) shows the current frame at once instead of waiting for the next put.
 Before the first put of a key its queryable sends no reply. Queryables are never declared on
 wildcards: they would catch other services' queries.
+
+Zenoh drops a put at any congested hop by default, which suits map frames (a newer one
+follows). A key in `blocking_keys` waits for room instead: for small messages a subscriber
+cannot do without, such as a run's final status, which no later put replaces.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 
 import zenoh
 
@@ -28,15 +32,27 @@ class LatestPublisher:
     memory (a dictionary look-up, never blocking on the publishing side).
     """
 
-    def __init__(self, session: zenoh.Session, keys: Sequence[str]) -> None:
+    def __init__(
+        self, session: zenoh.Session, keys: Sequence[str], blocking_keys: Collection[str] = ()
+    ) -> None:
         self._keys = _checked_keys(keys)
+        unknown = set(blocking_keys) - set(self._keys)
+        if unknown:
+            raise ValueError(f"blocking keys {sorted(unknown)} are not among the keys")
         self._latest: dict[str, bytes] = {}
         self._lock = threading.Lock()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._queryables: list[zenoh.Queryable] = []
         try:
             for key in self._keys:
-                self._publishers[key] = session.declare_publisher(key)
+                congestion = (
+                    zenoh.CongestionControl.BLOCK
+                    if key in blocking_keys
+                    else zenoh.CongestionControl.DROP
+                )
+                self._publishers[key] = session.declare_publisher(
+                    key, congestion_control=congestion
+                )
                 self._queryables.append(session.declare_queryable(key, self._answerer(key)))
         except BaseException:
             self.close()

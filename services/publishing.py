@@ -36,6 +36,7 @@ from services.messages import (
 
 WORLD_TOPICS = ("step", "pose", "scan")  # a robot's keys the world serves or publishes
 PUBLISHED_TOPICS = tuple(topic for topic in ROBOT_TOPICS if topic not in WORLD_TOPICS)
+MUST_ARRIVE_TOPICS = ("status", "metrics")  # small, and the last one is never replaced
 
 log = logging.getLogger("services.publishing")
 
@@ -51,7 +52,11 @@ class RunPublisher:
         services: ServicesConfig = DEFAULT_SERVICES,
     ) -> None:
         self.keys = {topic: robot_key(run, robot, topic) for topic in PUBLISHED_TOPICS}
-        self.latest = LatestPublisher(session, list(self.keys.values()))
+        self.latest = LatestPublisher(
+            session,
+            list(self.keys.values()),
+            blocking_keys=[self.keys[topic] for topic in MUST_ARRIVE_TOPICS],
+        )
         self._pending: dict[str, Message] = {}
         self._busy = False
         self._closed = False

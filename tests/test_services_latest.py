@@ -9,11 +9,13 @@ import threading
 
 import numpy as np
 import pytest
+import zenoh
 from service_processes import until
 
 from services.keys import robot_key
 from services.latest import LatestPublisher
 from services.messages import MapMessage, StatusMessage, decode_message
+from services.publishing import RunPublisher
 from services.zenoh_config import open_session, zenoh_config
 
 QUERY_TIMEOUT_S = 2.0
@@ -150,3 +152,35 @@ def test_concurrent_puts_leave_each_key_with_its_last_put(hub, viewer):
         for key in keys:
             (reply,) = _replies(viewer, key)
             assert decode_message(reply.payload.to_bytes()).t == 39
+
+
+def test_blocking_keys_wait_for_room_and_the_others_drop_under_congestion(hub):
+    frames, status = (
+        robot_key("latest_d", "r0", "observed_map"),
+        robot_key("latest_d", "r0", "status"),
+    )
+    with LatestPublisher(hub[0], [frames, status], blocking_keys=[status]) as latest:
+        congestion = {key: p.congestion_control for key, p in latest._publishers.items()}
+    assert congestion == {
+        frames: zenoh.CongestionControl.DROP,
+        status: zenoh.CongestionControl.BLOCK,
+    }
+
+
+def test_a_blocking_key_must_be_one_of_the_keys(hub):
+    key = robot_key("latest_e", "r0", "status")
+    with pytest.raises(ValueError, match="not among the keys"):
+        LatestPublisher(hub[0], [key], blocking_keys=[robot_key("latest_e", "r0", "goal")])
+
+
+def test_a_runs_status_and_metrics_are_never_dropped(hub):
+    publisher = RunPublisher(hub[0], "latest_f", "r0")
+    try:
+        blocking = {
+            topic
+            for topic, key in publisher.keys.items()
+            if publisher.latest._publishers[key].congestion_control == zenoh.CongestionControl.BLOCK
+        }
+    finally:
+        publisher.close()
+    assert blocking == {"status", "metrics"}  # maps, path, goal: a newer one follows
