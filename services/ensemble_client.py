@@ -22,12 +22,7 @@ import numpy as np
 import zenoh
 
 from mapex.config import NetworkConfig, ServicesConfig
-from mapex.prediction.base import (
-    MEMBER_NAMES,
-    EnsemblePrediction,
-    Predictor,
-    Region,
-)
+from mapex.prediction.base import MEMBER_NAMES, EnsemblePrediction, Predictor, Region
 from services.codec import DEFAULT_SERVICES, ProtocolError
 from services.keys import AliveKey, alive_predictor_pattern, parse_key, predict_key
 from services.messages import ErrorReply, PredictReply, PredictRequest, decode_message

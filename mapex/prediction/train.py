@@ -130,10 +130,16 @@ def _initial_model(
     than wherever an undertrained network guesses differently."""
     if member == 0 or not config.members_from_main:
         return LamaGenerator(network)
-    main = load_member(out_dir / f"{MEMBER_NAMES[0]}.pt")
+    path = _main_weights(out_dir)
+    main = load_member(path)
     if main.config != network:
-        raise ValueError(f"{out_dir / MEMBER_NAMES[0]}.pt was built for another network size")
+        raise ValueError(f"{path} was built for another network size")
     return main.train()
+
+
+def _main_weights(out_dir: Path) -> Path:
+    """Where G's weights are written in `out_dir` (and where its members start from)."""
+    return out_dir / f"{MEMBER_NAMES[0]}.pt"
 
 
 def _save_checkpoint(path, model, optimizer, schedule, rng, step: int, began: float) -> None:
@@ -209,8 +215,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def _check_main_for_members(members: list[int], config: PredictorTrainingConfig, out: Path) -> None:
     """Refuse, before any work, members that would start from a G this run has not got."""
-    main = out / f"{MEMBER_NAMES[0]}.pt"
-    if config.members_from_main and 0 not in members and any(members) and not main.exists():
+    main = _main_weights(out)
+    if config.members_from_main and 0 not in members and not main.exists():
         raise ValueError(
             f"{', '.join(MEMBER_NAMES[k] for k in members)} would start from G's weights, "
             f"but there is no {main}: train g too (--members {','.join(MEMBER_NAMES)}) "
