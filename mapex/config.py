@@ -114,6 +114,8 @@ class PredictorTrainingConfig:
     wall_weight: float = 2.0  # BCE weight of wall cells (walls are the rarer class)
     checkpoint_every_steps: int = 100
     seed: int = 0
+    data_workers: int = 0  # processes cutting crops (for a GPU); the count changes the crop order
+    network: NetworkConfig = field(default_factory=NetworkConfig)  # size of every member
 
 
 @dataclass(frozen=True)

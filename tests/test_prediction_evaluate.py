@@ -76,3 +76,12 @@ def test_a_missing_map_is_a_one_line_error(tmp_path, capsys):
     assert main(["--maps", str(tmp_path / "nowhere")]) == 2
     error = capsys.readouterr().err.strip()
     assert error.startswith("mapex.prediction.evaluate: error:") and "\n" not in error
+
+
+def test_a_weights_folder_without_weights_is_a_one_line_error(tmp_path, capsys):
+    assert main(["--weights", str(tmp_path)]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error == (
+        f"mapex.prediction.evaluate: error: no weights file {tmp_path / 'g.pt'} "
+        "(train with python -m mapex.prediction.train)"
+    )

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import mapex.prediction.train as train
-from mapex.config import NetworkConfig, PredictorTrainingConfig
+from mapex.config import NetworkConfig, PredictorTrainingConfig, apply_overrides
 from mapex.prediction.dataset import (
     CropSampler,
     SnapshotSet,
@@ -30,6 +30,7 @@ TINY = PredictorTrainingConfig(
     main_steps=4,
     member_steps=2,
     checkpoint_every_steps=2,
+    network=SMALL,
 )
 
 
@@ -69,35 +70,61 @@ def test_crops_hang_over_the_map_border_by_at_most_the_overhang(snapshots, overh
 
 
 def test_a_few_training_steps_write_loadable_weights(snapshots, tmp_path):
-    path = train.train_member(0, snapshots, TINY, SMALL, torch.device("cpu"), tmp_path, False)
+    path = train.train_member(0, snapshots, TINY, torch.device("cpu"), tmp_path, False)
     model = load_member(path)
     assert model.config == SMALL
     metadata = read_metadata(path)
     assert metadata["steps"] == 4 and metadata["snapshots"] == 3
 
 
-def test_interrupted_training_resumes_to_the_same_weights(snapshots, tmp_path, monkeypatch):
-    straight = train.train_member(
-        0, snapshots, TINY, SMALL, torch.device("cpu"), tmp_path / "a", False
-    )
-    real_make_batch, calls = train.make_batch, []
+def _train(snapshots, config, out_dir, resume=False):
+    return train.train_member(0, snapshots, config, torch.device("cpu"), out_dir, resume)
 
-    def dying_make_batch(*args):
-        calls.append(1)
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        return real_make_batch(*args)
 
-    monkeypatch.setattr(train, "make_batch", dying_make_batch)
-    with pytest.raises(KeyboardInterrupt):
-        train.train_member(0, snapshots, TINY, SMALL, torch.device("cpu"), tmp_path / "b", False)
-    monkeypatch.setattr(train, "make_batch", real_make_batch)
-    resumed = train.train_member(
-        0, snapshots, TINY, SMALL, torch.device("cpu"), tmp_path / "b", True
-    )
-    first, second = load_member(straight).state_dict(), load_member(resumed).state_dict()
+def _assert_same_weights(first_path, second_path):
+    first, second = load_member(first_path).state_dict(), load_member(second_path).state_dict()
     for key in first:
         torch.testing.assert_close(first[key], second[key], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("data_workers", [0, 2])
+def test_interrupted_training_resumes_to_the_same_weights(
+    snapshots, tmp_path, monkeypatch, data_workers
+):
+    config = dataclasses.replace(
+        TINY, data_workers=data_workers, main_steps=5, checkpoint_every_steps=3
+    )  # resumes at step 3: with 2 workers, worker 0 then serves the odd batches
+    straight = _train(snapshots, config, tmp_path / "a")
+    real_loss, calls = train.masked_loss, []
+
+    def dying_loss(*args):
+        calls.append(1)
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+        return real_loss(*args)
+
+    monkeypatch.setattr(train, "masked_loss", dying_loss)
+    with pytest.raises(KeyboardInterrupt):
+        _train(snapshots, config, tmp_path / "b")
+    monkeypatch.setattr(train, "masked_loss", real_loss)
+    _assert_same_weights(straight, _train(snapshots, config, tmp_path / "b", resume=True))
+
+
+def test_loader_workers_draw_a_seeded_order(snapshots, tmp_path):
+    config = dataclasses.replace(TINY, data_workers=2)
+    first, second = (
+        _train(snapshots, config, tmp_path / "a"),
+        _train(snapshots, config, tmp_path / "b"),
+    )
+    _assert_same_weights(first, second)  # the same, however the workers were scheduled
+    alone = load_member(_train(snapshots, TINY, tmp_path / "c")).state_dict()
+    assert not torch.equal(load_member(first).state_dict()["stem.1.weight"], alone["stem.1.weight"])
+
+
+def test_the_network_size_is_set_from_the_command_line(snapshots, tmp_path):
+    config = apply_overrides(TINY, ["network.channels=8", "network.n_blocks=2"])
+    model = load_member(_train(snapshots, config, tmp_path))
+    assert (model.config.channels, len(model.blocks)) == (8, 2)
 
 
 def test_validation_maps_are_refused_for_training():
@@ -115,30 +142,26 @@ def test_members_train_on_disjoint_worlds():
 
 
 def test_members_start_from_the_trained_main_model(snapshots, tmp_path):
-    main = load_member(
-        train.train_member(0, snapshots, TINY, SMALL, torch.device("cpu"), tmp_path, False)
-    )
-    member = train._initial_model(1, SMALL, TINY, tmp_path)
+    main = load_member(train.train_member(0, snapshots, TINY, torch.device("cpu"), tmp_path, False))
+    member = train._initial_model(1, TINY, tmp_path)
     for key, value in main.state_dict().items():
         torch.testing.assert_close(member.state_dict()[key], value, rtol=0, atol=0)
     assert member.training  # ready to be fine-tuned
-    fresh = train._initial_model(
-        1, SMALL, dataclasses.replace(TINY, members_from_main=False), tmp_path
-    )
+    fresh = train._initial_model(1, dataclasses.replace(TINY, members_from_main=False), tmp_path)
     weight = "stem.1.weight"
     assert not torch.equal(fresh.state_dict()[weight], main.state_dict()[weight])
 
 
 def test_a_member_without_a_trained_main_model_is_refused(tmp_path):
     with pytest.raises(WeightsError, match="no weights file"):
-        train._initial_model(2, SMALL, TINY, tmp_path)
+        train._initial_model(2, TINY, tmp_path)
 
 
 def test_a_main_model_of_another_size_is_refused(snapshots, tmp_path):
-    train.train_member(0, snapshots, TINY, SMALL, torch.device("cpu"), tmp_path, False)
-    other = dataclasses.replace(SMALL, channels=8)
+    train.train_member(0, snapshots, TINY, torch.device("cpu"), tmp_path, False)
+    other = apply_overrides(TINY, ["network.channels=8"])
     with pytest.raises(ValueError, match="another network size"):
-        train._initial_model(3, other, TINY, tmp_path)
+        train._initial_model(3, other, tmp_path)
 
 
 def test_members_without_g_are_refused_before_any_work(tmp_path, capsys):
@@ -149,3 +172,13 @@ def test_members_without_g_are_refused_before_any_work(tmp_path, capsys):
         f"but there is no {tmp_path / 'g.pt'}: train g too (--members g,g1,g2,g3) "
         "or --set members_from_main=false"
     ]  # one line, and no snapshots were collected
+
+
+def test_too_few_worlds_for_the_members_are_refused_before_any_work(tmp_path, capsys):
+    argv = ["--out", str(tmp_path), "--no-kth", "--set", "procedural_worlds=2"]
+    status = train.main(argv)
+    error = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and error == [
+        "mapex.prediction.train: error: 2 training world(s), but g, g1, g2, g3 need at least 3: "
+        "raise procedural_worlds or give the KTH maps"
+    ]

@@ -9,6 +9,7 @@ the time, with flips and 90-degree rotations.
 from __future__ import annotations
 
 import multiprocessing
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -97,11 +98,12 @@ def explore_snapshots(spec: str, config: PredictorTrainingConfig) -> list[np.nda
 
 
 def collect_snapshots(
-    specs: list[str], config: PredictorTrainingConfig, processes: int = 2
+    specs: list[str], config: PredictorTrainingConfig, processes: int | None = None
 ) -> SnapshotSet:
-    """Explore every world (in `processes` spawned processes) and gather the snapshots."""
+    """Explore every world (in `processes` spawned processes, default one per CPU core) and
+    gather the snapshots, in the order of `specs` whatever the number of processes."""
     context = multiprocessing.get_context("spawn")
-    with context.Pool(processes) as pool:
+    with context.Pool(processes or os.cpu_count()) as pool:
         per_world = pool.starmap(explore_snapshots, [(spec, config) for spec in specs])
     worlds = [load_world(spec) for spec in specs]
     observed = [snapshot for snapshots in per_world for snapshot in snapshots]

@@ -29,7 +29,7 @@ from mapex.prediction import make_predictor
 from mapex.prediction.base import EnsemblePrediction
 from mapex.prediction.classical import distance_to_known
 from mapex.prediction.dataset import snapshots_at
-from mapex.prediction.weights import WeightsError
+from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
 from mapex.worlds import WorldError, load_world, start_poses
 
 KTH_DEV_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "kth_dev"
@@ -92,10 +92,15 @@ def near_known(observed: np.ndarray, within_cells: int) -> np.ndarray:
 
 
 def evaluate(
-    map_dirs: list[Path], settings: PredictorEvaluationConfig, figure: Path | None
+    map_dirs: list[Path],
+    settings: PredictorEvaluationConfig,
+    figure: Path | None,
+    weights_dir: Path = WEIGHTS_DIR,
 ) -> list[SnapshotScore]:
-    """Score every (map, start, time) snapshot; optionally draw one of them."""
-    learned, classical = make_predictor("lama"), make_predictor("classical")
+    """Score every (map, start, time) snapshot of the ensemble in `weights_dir`; optionally
+    draw one of them."""
+    learned = make_predictor("lama", weights_dir=weights_dir)
+    classical = make_predictor("classical")
     config = ExplorationConfig()
     threshold = config.metrics.prediction_threshold
     times = settings.snapshot_times
@@ -216,12 +221,19 @@ def main(argv: list[str] | None = None) -> int:
         "--times", nargs="+", type=int, default=list(defaults.snapshot_times), help="steps"
     )
     parser.add_argument("--figure", type=Path, default=None, help="write a PNG of one snapshot")
+    parser.add_argument(
+        "--weights",
+        type=Path,
+        default=WEIGHTS_DIR,
+        help="the ensemble to score: a folder written by mapex.prediction.train --out "
+        "(default: the shipped weights)",
+    )
     args = parser.parse_args(argv)
     settings = dataclasses.replace(defaults, snapshot_times=tuple(sorted(set(args.times))))
     if min(settings.snapshot_times) < 0:
         parser.error("--times must be >= 0")
     try:
-        scores = evaluate(args.maps, settings, args.figure)
+        scores = evaluate(args.maps, settings, args.figure, args.weights)
     except (WorldError, WeightsError) as error:
         print(f"mapex.prediction.evaluate: error: {error}", file=sys.stderr)
         return 2

@@ -21,14 +21,15 @@ import torch
 from torch.nn import functional as F
 from tqdm import tqdm
 
-from mapex.config import ConfigError, NetworkConfig, PredictorTrainingConfig, apply_overrides
+from mapex.config import ConfigError, PredictorTrainingConfig, apply_overrides
+from mapex.prediction.batches import batch_loader
 from mapex.prediction.dataset import (
     CropSampler,
     SnapshotSet,
     collect_snapshots,
     training_world_specs,
 )
-from mapex.prediction.network import LamaGenerator, encode_observed
+from mapex.prediction.network import LamaGenerator
 from mapex.prediction.weights import MEMBER_NAMES, WEIGHTS_DIR, load_member, save_weights
 from mapex.worlds import WorldError
 
@@ -43,17 +44,6 @@ def member_snapshots(snapshots: SnapshotSet, member: int) -> SnapshotSet:
     return snapshots.subset(snapshots.world_of % 3 == member - 1)
 
 
-def make_batch(
-    sampler: CropSampler, rng: np.random.Generator, size: int, device: torch.device
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Inputs (b, 3, c, c), wall targets (b, 1, c, c) and loss masks (b, 1, c, c)."""
-    crops = [sampler.sample(rng) for _ in range(size)]
-    inputs = np.stack([encode_observed(observed) for observed, _, _ in crops])
-    walls = np.stack([w for _, w, _ in crops])[:, None]
-    masks = np.stack([m for _, _, m in crops])[:, None]
-    return tuple(torch.from_numpy(a).to(device) for a in (inputs, walls, masks))
-
-
 def masked_loss(logits: torch.Tensor, walls: torch.Tensor, mask: torch.Tensor, wall_weight: float):
     """Binary cross-entropy over the masked cells, walls weighted by `wall_weight`."""
     weights = mask * (1.0 + (wall_weight - 1.0) * walls)
@@ -65,7 +55,6 @@ def train_member(
     member: int,
     snapshots: SnapshotSet,
     config: PredictorTrainingConfig,
-    network: NetworkConfig,
     device: torch.device,
     out_dir: Path,
     resume: bool,
@@ -75,8 +64,7 @@ def train_member(
     steps = config.main_steps if member == 0 else config.member_steps
     data = member_snapshots(snapshots, member)
     torch.manual_seed(config.seed + member)
-    rng = np.random.default_rng(config.seed + member)
-    model = _initial_model(member, network, config, out_dir).to(device)
+    model = _initial_model(member, config, out_dir).to(device)
     optimizer = torch.optim.AdamW(
         model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
     )
@@ -90,15 +78,21 @@ def train_member(
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         schedule.load_state_dict(state["schedule"])
-        rng.bit_generator.state = state["numpy_rng"]
         torch.set_rng_state(state["torch_rng"])
         start, elapsed = state["step"], state["elapsed_s"]
-    sampler = CropSampler(data, config)
+    batches = batch_loader(
+        CropSampler(data, config),
+        config.seed + member,
+        config.batch_size,
+        first_batch=start,
+        workers=config.data_workers,
+        pin=device.type == "cuda",
+    )
     model.train()
     began = time.perf_counter() - elapsed
     bar = tqdm(range(start, steps), initial=start, total=steps, desc=f"train {name}", unit="step")
-    for step in bar:
-        inputs, walls, masks = make_batch(sampler, rng, config.batch_size, device)
+    for step, batch in zip(bar, batches, strict=False):  # the batch stream is endless
+        inputs, walls, masks = (a.to(device, non_blocking=True) for a in batch)
         loss = masked_loss(model(inputs), walls, masks, config.wall_weight)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -107,7 +101,7 @@ def train_member(
         bar.set_postfix(loss=f"{loss.item():.4f}")
         done = step + 1
         if done % config.checkpoint_every_steps == 0 or done == steps:
-            _save_checkpoint(checkpoint, model, optimizer, schedule, rng, done, began)
+            _save_checkpoint(checkpoint, model, optimizer, schedule, done, began)
     metadata = {
         "member": name,
         "steps": steps,
@@ -120,20 +114,21 @@ def train_member(
     return save_weights(out_dir / f"{name}.pt", model, metadata)
 
 
-def _initial_model(
-    member: int, network: NetworkConfig, config: PredictorTrainingConfig, out_dir: Path
-) -> LamaGenerator:
+def _initial_model(member: int, config: PredictorTrainingConfig, out_dir: Path) -> LamaGenerator:
     """A fresh network; for G_1..G_3 with `members_from_main`, G's trained weights from `out_dir`.
 
     Starting every member from one trained G, as the paper starts them from one
     pretrained LaMa, makes them differ where their data subsets disagree rather
     than wherever an undertrained network guesses differently."""
     if member == 0 or not config.members_from_main:
-        return LamaGenerator(network)
+        return LamaGenerator(config.network)
     path = _main_weights(out_dir)
     main = load_member(path)
-    if main.config != network:
-        raise ValueError(f"{path} was built for another network size")
+    if main.config != config.network:
+        raise ValueError(
+            f"{path} was built for another network size ({main.config}): "
+            "give the same --set network.FIELD=VALUE as when g was trained"
+        )
     return main.train()
 
 
@@ -142,13 +137,12 @@ def _main_weights(out_dir: Path) -> Path:
     return out_dir / f"{MEMBER_NAMES[0]}.pt"
 
 
-def _save_checkpoint(path, model, optimizer, schedule, rng, step: int, began: float) -> None:
+def _save_checkpoint(path, model, optimizer, schedule, step: int, began: float) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {
         "model": model.state_dict(),
         "optimizer": optimizer.state_dict(),
         "schedule": schedule.state_dict(),
-        "numpy_rng": rng.bit_generator.state,
         "torch_rng": torch.get_rng_state(),
         "step": step,
         "elapsed_s": time.perf_counter() - began,
@@ -184,7 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="FIELD=VALUE",
-        help="override a training field, e.g. main_steps=500 (see PredictorTrainingConfig)",
+        help="override a training field, e.g. main_steps=500, network.channels=128 or "
+        "data_workers=8 (see PredictorTrainingConfig and NetworkConfig in mapex/config.py)",
     )
     return parser
 
@@ -200,12 +195,12 @@ def main(argv: list[str] | None = None) -> int:
         _check_main_for_members(members, config, args.out)
         kth_dirs = [] if args.no_kth else [str(args.kth_dir / m) for m in TRAINING_KTH_MAPS]
         specs = training_world_specs(config, kth_dirs)
+        _check_enough_worlds(members, len(specs))
         print(f"collecting snapshots from {len(specs)} worlds ...", file=sys.stderr)
         snapshots = collect_snapshots(specs, config)
         print(f"{len(snapshots.observed)} snapshots", file=sys.stderr)
         for member in members:
-            network = NetworkConfig()
-            path = train_member(member, snapshots, config, network, device, args.out, args.resume)
+            path = train_member(member, snapshots, config, device, args.out, args.resume)
             print(f"wrote {path}")
     except (ConfigError, WorldError, ValueError) as error:
         print(f"mapex.prediction.train: error: {error}", file=sys.stderr)
@@ -221,6 +216,16 @@ def _check_main_for_members(members: list[int], config: PredictorTrainingConfig,
             f"{', '.join(MEMBER_NAMES[k] for k in members)} would start from G's weights, "
             f"but there is no {main}: train g too (--members {','.join(MEMBER_NAMES)}) "
             "or --set members_from_main=false"
+        )
+
+
+def _check_enough_worlds(members: list[int], n_worlds: int) -> None:
+    """Refuse, before any work, a run in which a member would get no snapshots at all."""
+    needed = 3 if any(member > 0 for member in members) else 1  # G_k: a third of the worlds
+    if n_worlds < needed:
+        raise ValueError(
+            f"{n_worlds} training world(s), but {', '.join(MEMBER_NAMES[k] for k in members)} "
+            f"need at least {needed}: raise procedural_worlds or give the KTH maps"
         )
 
 
