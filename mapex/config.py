@@ -269,6 +269,7 @@ class WatchConfig:
     every_s: float = 1.0  # render at most this often (only when something new arrived)
     poll_s: float = 0.1  # how often the loop looks at arrivals (reaction time to "finished")
     get_timeout_s: float = 2.0  # late-joiner query; topics still unheard are re-asked this often
+    inbox_depth: int = 8  # newest payloads kept per topic between polls (a bad one hides no good)
     dpi: int = 80
     panel_inches: float = 4.0  # width of one map panel
     max_gif_frames: int = 300  # at the cap every other frame is dropped (memory stays bounded)

@@ -24,6 +24,7 @@ import logging
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -131,17 +132,22 @@ def decode_topic(topic: str, payload: Payload) -> Message:
     return message
 
 
-def apply_payloads(state: WatchState, payloads: dict[str, bytes], keys: dict[str, str]) -> bool:
-    """Decode and apply each topic's payload; log and drop malformed ones. True if any applied."""
+def apply_payloads(
+    state: WatchState, payloads: dict[str, list[bytes]], keys: dict[str, str]
+) -> bool:
+    """Apply the newest well-formed payload of each topic (oldest first in each list); log and
+    drop malformed ones. True if any applied."""
     applied = False
-    for topic, payload in payloads.items():
-        try:
-            message = decode_topic(topic, payload)
-        except ProtocolError as error:
-            log.warning("dropped a malformed message on %s: %s", keys[topic], error)
-            continue
-        state.apply(topic, message)
-        applied = True
+    for topic, candidates in payloads.items():
+        for payload in reversed(candidates):
+            try:
+                message = decode_topic(topic, payload)
+            except ProtocolError as error:
+                log.warning("dropped a malformed message on %s: %s", keys[topic], error)
+                continue
+            state.apply(topic, message)
+            applied = True
+            break
     return applied
 
 
@@ -186,31 +192,35 @@ class FrameOutputs:
 
 
 class Inbox:
-    """The latest raw payload per topic, filled on Zenoh's threads, drained by the main loop."""
+    """The newest raw payloads per topic, filled on Zenoh's threads, drained by the main loop.
 
-    def __init__(self) -> None:
+    Up to `depth` payloads per topic are kept between drains, so that a malformed payload
+    arriving just after a good one (say, after the final status) does not hide it."""
+
+    def __init__(self, depth: int = DEFAULT_WATCH.inbox_depth) -> None:
         self._lock = threading.Lock()
-        self._pending: dict[str, bytes] = {}
+        self._depth = depth
+        self._pending: dict[str, deque[bytes]] = {}
         self._heard: set[str] = set()
 
     def deliver(self, topic: str, payload: bytes) -> None:
-        """A live sample: it replaces whatever is pending for `topic`."""
+        """A live sample: the newest of `topic`."""
         with self._lock:
-            self._pending[topic] = payload
+            self._pending.setdefault(topic, deque(maxlen=self._depth)).append(payload)
             self._heard.add(topic)
 
     def offer(self, topic: str, payload: bytes) -> None:
         """A late-joiner reply: taken only if no live sample of `topic` came first (newer)."""
         with self._lock:
             if topic not in self._heard:
-                self._pending[topic] = payload
+                self._pending[topic] = deque([payload], maxlen=self._depth)
                 self._heard.add(topic)
 
-    def drain(self) -> dict[str, bytes]:
-        """The pending payloads, emptying the inbox."""
+    def drain(self) -> dict[str, list[bytes]]:
+        """The pending payloads of each topic, oldest first, emptying the inbox."""
         with self._lock:
             pending, self._pending = self._pending, {}
-        return pending
+        return {topic: list(payloads) for topic, payloads in pending.items()}
 
     def unheard(self) -> list[str]:
         """The watched topics nothing has arrived on yet."""
@@ -224,7 +234,7 @@ class Watcher:
     def __init__(self, session: zenoh.Session, run: str, robot: str, config: WatchConfig) -> None:
         self.session, self.config = session, config
         self.keys = {topic: robot_key(run, robot, topic) for topic in WATCHED_TOPICS}
-        self.inbox = Inbox()
+        self.inbox = Inbox(config.inbox_depth)
         # subscribe first, then ask: nothing put in between is missed
         self.subscribers = [
             session.declare_subscriber(key, self._on_sample(topic))

@@ -123,17 +123,27 @@ def test_decode_topic_refuses_the_wrong_message(topic, payload, match):
 def test_apply_payloads_logs_and_drops_malformed_ones_keeping_the_last_good(caplog):
     state = _state(_frames(4))
     keys = {topic: f"key/{topic}" for topic in WATCHED_TOPICS}
-    payloads = {"pose": b"junk", "goal": GoalMessage(5, None).encode()}
+    payloads = {"pose": [b"junk"], "goal": [GoalMessage(5, None).encode()]}
     with caplog.at_level(logging.WARNING, logger="services.watch"):
         assert apply_payloads(state, payloads, keys)
     assert state.pose.t == 4 and state.goal.goal is None and state.t == 5
     assert "dropped a malformed message on key/pose" in caplog.text
-    assert not apply_payloads(state, {"status": b"junk"}, keys)
+    assert not apply_payloads(state, {"status": [b"junk"]}, keys)
     state.apply("status", StatusMessage(6, "failed"))
     assert state.finished
 
 
-def test_inbox_keeps_the_latest_and_prefers_live_samples_to_late_replies():
+def test_a_malformed_payload_right_after_the_final_status_does_not_hide_it():
+    state = _state(_frames(4))
+    keys = {topic: f"key/{topic}" for topic in WATCHED_TOPICS}
+    inbox = Inbox(depth=3)
+    for payload in (b"old junk", StatusMessage(7, "finished").encode(), b"junk", b"more junk"):
+        inbox.deliver("status", payload)
+    assert apply_payloads(state, inbox.drain(), keys)
+    assert state.finished and state.status.t == 7
+
+
+def test_inbox_keeps_the_newest_in_order_and_prefers_live_samples_to_late_replies():
     inbox = Inbox()
     inbox.offer("goal", b"old reply")
     inbox.deliver("goal", b"live")
@@ -141,7 +151,11 @@ def test_inbox_keeps_the_latest_and_prefers_live_samples_to_late_replies():
     inbox.deliver("status", b"one")
     inbox.deliver("status", b"two")
     inbox.offer("status", b"stale reply")
-    assert inbox.drain() == {"goal": b"live", "pose": b"reply", "status": b"two"}
+    assert inbox.drain() == {
+        "goal": [b"old reply", b"live"],
+        "pose": [b"reply"],
+        "status": [b"one", b"two"],
+    }  # newest last; a reply after a live sample is stale
     assert inbox.drain() == {}
     assert set(inbox.unheard()) == set(WATCHED_TOPICS) - {"goal", "pose", "status"}
 
