@@ -139,16 +139,21 @@ def apply_payloads(
     drop malformed ones. True if any applied."""
     applied = False
     for topic, candidates in payloads.items():
-        for payload in reversed(candidates):
-            try:
-                message = decode_topic(topic, payload)
-            except ProtocolError as error:
-                log.warning("dropped a malformed message on %s: %s", keys[topic], error)
-                continue
+        message = _newest_well_formed(topic, candidates, keys[topic])
+        if message is not None:
             state.apply(topic, message)
             applied = True
-            break
     return applied
+
+
+def _newest_well_formed(topic: str, candidates: list[bytes], key: str) -> Message | None:
+    """The newest of `candidates` that decodes as `topic`'s message; newer malformed ones logged."""
+    for payload in reversed(candidates):
+        try:
+            return decode_topic(topic, payload)
+        except ProtocolError as error:
+            log.warning("dropped a malformed message on %s: %s", key, error)
+    return None
 
 
 # ---------------------------------------------------------------------------- outputs
