@@ -112,6 +112,9 @@ class PredictorTrainingConfig:
     learning_rate: float = 2e-3
     weight_decay: float = 1e-4
     wall_weight: float = 2.0  # BCE weight of wall cells (walls are the rarer class)
+    calibrate_main: bool = True  # after training G, choose its decision threshold (IoU)
+    calibration_snapshots: int = 200  # training snapshots G's threshold is chosen on
+    calibration_thresholds: tuple[float, ...] = tuple(round(0.2 + 0.025 * i, 3) for i in range(17))
     checkpoint_every_steps: int = 100
     seed: int = 0
     data_workers: int = 0  # processes cutting crops (for a GPU); the count changes the crop order
@@ -351,6 +354,9 @@ def _coerce(raw: str, hint: Any, item: str) -> Any:
         return raw
     if origin in (typing.Union, types.UnionType):
         hint = next(a for a in typing.get_args(hint) if a is not type(None))
+    if typing.get_origin(hint) is tuple:  # tuple[X, ...]: comma-separated values
+        item_hint = typing.get_args(hint)[0]
+        return tuple(_coerce(part.strip(), item_hint, item) for part in raw.split(","))
     try:
         if hint is bool:
             if raw.lower() not in ("true", "false", "1", "0"):

@@ -1,6 +1,6 @@
 import pytest
 
-from mapex.config import ConfigError, ExplorationConfig, apply_overrides
+from mapex.config import ConfigError, ExplorationConfig, PredictorTrainingConfig, apply_overrides
 
 
 def test_override_sets_typed_values():
@@ -18,6 +18,17 @@ def test_override_sets_typed_values():
     assert config.visibility.epsilon == pytest.approx(0.6)
     assert config.motion.cells_per_step == 2
     assert ExplorationConfig().visibility.stop_rule == "threshold"  # the default is untouched
+
+
+def test_tuple_overrides_are_comma_separated_typed_values():
+    config = apply_overrides(
+        PredictorTrainingConfig(),
+        ["snapshot_methods=nearest, mapex", "calibration_thresholds=0.3,0.45"],
+    )
+    assert config.snapshot_methods == ("nearest", "mapex")
+    assert config.calibration_thresholds == (0.3, 0.45)
+    with pytest.raises(ConfigError, match="not a valid float"):
+        apply_overrides(config, ["calibration_thresholds=0.3,low"])
 
 
 @pytest.mark.parametrize(

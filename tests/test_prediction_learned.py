@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 import torch
+from tiny_training import SMALL
 
-from mapex.config import NetworkConfig
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
 from mapex.prediction import make_predictor
 from mapex.prediction.learned import LearnedEnsemble
@@ -16,8 +16,6 @@ from mapex.prediction.weights import (
     read_metadata,
     save_weights,
 )
-
-SMALL = NetworkConfig(channels=16, n_blocks=1, downscale=4, refine_channels=4)
 
 
 @pytest.fixture

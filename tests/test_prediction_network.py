@@ -3,12 +3,11 @@
 import numpy as np
 import pytest
 import torch
+from tiny_training import SMALL
 
 from mapex.config import NetworkConfig
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
 from mapex.prediction.network import OUTSIDE_MAP, LamaGenerator, encode_observed
-
-SMALL = NetworkConfig(channels=16, n_blocks=1, downscale=4, refine_channels=4)
 
 
 def random_observed(shape, seed=0):

@@ -5,40 +5,23 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from tiny_training import SMALL, TINY, tiny_snapshots
 
 import mapex.prediction.train as train
-from mapex.config import NetworkConfig, PredictorTrainingConfig, apply_overrides
+from mapex.config import apply_overrides
 from mapex.prediction.dataset import (
     CropSampler,
     SnapshotSet,
-    explore_snapshots,
     training_world_specs,
 )
 from mapex.prediction.network import OUTSIDE_MAP
 from mapex.prediction.weights import WeightsError, load_member, read_metadata
 from mapex.worlds import load_world
 
-SMALL = NetworkConfig(channels=16, n_blocks=1, downscale=4, refine_channels=4)
-TINY = PredictorTrainingConfig(
-    procedural_worlds=1,
-    snapshot_steps=120,
-    snapshot_every_steps=40,
-    starts_per_world=1,
-    snapshot_methods=("nearest",),
-    crop_cells=64,
-    batch_size=2,
-    main_steps=4,
-    member_steps=2,
-    checkpoint_every_steps=2,
-    network=SMALL,
-)
-
 
 @pytest.fixture(scope="module")
 def snapshots():
-    specs = training_world_specs(TINY, [])
-    observed = explore_snapshots(specs[0], TINY)
-    return SnapshotSet([load_world(specs[0])], observed, np.zeros(len(observed), dtype=np.int64))
+    return tiny_snapshots()
 
 
 def test_snapshots_are_partial_observations(snapshots):

@@ -2,8 +2,10 @@
 
 The weights ship in `mapex/prediction/weights/` (made by `python -m
 mapex.prediction.train`); they load on CPU with no GPU present and use a GPU when
-asked. Torch runs with `threads` CPU threads (all cores when alone on the machine,
-one per worker when several share it).
+asked. A member's stored logit bias is added to its output: G's calibrated decision
+threshold (`mapex.prediction.calibration`), 0 for G_1..G_3. Torch runs with
+`threads` CPU threads (all cores when alone on the machine, one per worker when
+several share it).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import torch
 from mapex.config import NetworkConfig
 from mapex.prediction.base import Predictor
 from mapex.prediction.network import encode_observed
-from mapex.prediction.weights import MEMBER_NAMES, WEIGHTS_DIR, load_member
+from mapex.prediction.weights import MEMBER_NAMES, WEIGHTS_DIR, load_member, read_logit_bias
 
 
 class LearnedEnsemble(Predictor):
@@ -36,9 +38,9 @@ class LearnedEnsemble(Predictor):
         if threads is not None:
             torch.set_num_threads(threads)
         self.device = torch.device(device)
-        self.models = [
-            load_member(Path(weights_dir) / f"{name}.pt", self.device) for name in members
-        ]
+        paths = [Path(weights_dir) / f"{name}.pt" for name in members]
+        self.models = [load_member(path, self.device) for path in paths]
+        self.logit_biases = [read_logit_bias(path) for path in paths]
         self.n_members = len(self.models)
 
     def predict_members(self, observed: np.ndarray, members: Sequence[int]) -> np.ndarray:
@@ -47,5 +49,7 @@ class LearnedEnsemble(Predictor):
             return np.zeros((len(members), *observed.shape), dtype=np.float32)
         inputs = torch.from_numpy(encode_observed(observed))[None].to(self.device)
         with torch.inference_mode():
-            outputs = [torch.sigmoid(self.models[k](inputs))[0, 0] for k in members]
+            outputs = [
+                torch.sigmoid(self.models[k](inputs) + self.logit_biases[k])[0, 0] for k in members
+            ]
         return torch.stack(outputs).float().cpu().numpy()

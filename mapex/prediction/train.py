@@ -3,8 +3,11 @@
 G is trained on every snapshot; G_1..G_3 each on the snapshots of a disjoint third
 of the worlds (SPEC §4). Snapshots come from exploring procedural floor plans and
 the two KTH maps allowed for training. Checkpoints are written as training goes,
-so an interrupted run resumes with `--resume`. The final weights (float16) go to
-`mapex/prediction/weights/` by default, where the package loads them from.
+so an interrupted run resumes with `--resume`. Once G is trained, its decision
+threshold is chosen on training snapshots (`mapex.prediction.calibration`);
+`--calibrate-only` does that alone for the G already in `--out`. The final weights
+(float16) go to `mapex/prediction/weights/` by default, where the package loads
+them from.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from tqdm import tqdm
 
 from mapex.config import ConfigError, PredictorTrainingConfig, apply_overrides
 from mapex.prediction.batches import batch_loader
+from mapex.prediction.calibration import calibrate_weights, describe
 from mapex.prediction.dataset import (
     CropSampler,
     SnapshotSet,
@@ -30,7 +34,13 @@ from mapex.prediction.dataset import (
     training_world_specs,
 )
 from mapex.prediction.network import LamaGenerator
-from mapex.prediction.weights import MEMBER_NAMES, WEIGHTS_DIR, load_member, save_weights
+from mapex.prediction.weights import (
+    MEMBER_NAMES,
+    WEIGHTS_DIR,
+    WeightsError,
+    load_member,
+    save_weights,
+)
 from mapex.worlds import WorldError
 
 DEFAULT_KTH_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "kth_dev"
@@ -173,6 +183,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-kth", action="store_true", help="train on procedural plans only")
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoints")
     parser.add_argument(
+        "--calibrate-only",
+        action="store_true",
+        help="train nothing: choose the decision threshold of the g.pt in --out",
+    )
+    parser.add_argument(
         "--set",
         dest="overrides",
         action="append",
@@ -192,6 +207,9 @@ def main(argv: list[str] | None = None) -> int:
         device = _device(args.device)
         if args.threads:
             torch.set_num_threads(args.threads)
+        if args.calibrate_only:
+            load_member(_main_weights(args.out))  # fail before collecting snapshots
+            members = []
         _check_main_for_members(members, config, args.out)
         kth_dirs = [] if args.no_kth else [str(args.kth_dir / m) for m in TRAINING_KTH_MAPS]
         specs = training_world_specs(config, kth_dirs)
@@ -202,7 +220,10 @@ def main(argv: list[str] | None = None) -> int:
         for member in members:
             path = train_member(member, snapshots, config, device, args.out, args.resume)
             print(f"wrote {path}")
-    except (ConfigError, WorldError, ValueError) as error:
+        if args.calibrate_only or (0 in members and config.calibrate_main):
+            calibration = calibrate_weights(_main_weights(args.out), snapshots, config)
+            print(describe(calibration))
+    except (ConfigError, WorldError, WeightsError, ValueError) as error:
         print(f"mapex.prediction.train: error: {error}", file=sys.stderr)
         return 2
     return 0
@@ -224,9 +245,14 @@ def _check_enough_worlds(members: list[int], n_worlds: int) -> None:
     needed = 3 if any(member > 0 for member in members) else 1  # G_k: a third of the worlds
     if n_worlds < needed:
         raise ValueError(
-            f"{n_worlds} training world(s), but {', '.join(MEMBER_NAMES[k] for k in members)} "
+            f"{n_worlds} training world(s), but {_names(members)} "
             f"need at least {needed}: raise procedural_worlds or give the KTH maps"
         )
+
+
+def _names(members: list[int]) -> str:
+    """The members' names for a message ("calibrating g" when none is trained)."""
+    return ", ".join(MEMBER_NAMES[k] for k in members) or "calibrating g"
 
 
 def _member_names(text: str) -> list[str]:
