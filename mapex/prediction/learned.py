@@ -19,7 +19,7 @@ import torch
 from mapex.config import NetworkConfig
 from mapex.prediction.base import Predictor
 from mapex.prediction.network import encode_observed
-from mapex.prediction.weights import MEMBER_NAMES, WEIGHTS_DIR, load_member, read_logit_bias
+from mapex.prediction.weights import MEMBER_NAMES, WEIGHTS_DIR, load_member_with_bias
 
 
 class LearnedEnsemble(Predictor):
@@ -38,9 +38,11 @@ class LearnedEnsemble(Predictor):
         if threads is not None:
             torch.set_num_threads(threads)
         self.device = torch.device(device)
-        paths = [Path(weights_dir) / f"{name}.pt" for name in members]
-        self.models = [load_member(path, self.device) for path in paths]
-        self.logit_biases = [read_logit_bias(path) for path in paths]
+        loaded = [
+            load_member_with_bias(Path(weights_dir) / f"{name}.pt", self.device) for name in members
+        ]
+        self.models = [model for model, _ in loaded]
+        self.logit_biases = [bias for _, bias in loaded]
         self.n_members = len(self.models)
 
     def predict_members(self, observed: np.ndarray, members: Sequence[int]) -> np.ndarray:

@@ -27,6 +27,7 @@ __all__ = [
     "WEIGHTS_DIR",
     "WeightsError",
     "load_member",
+    "load_member_with_bias",
     "read_logit_bias",
     "save_weights",
     "set_logit_bias",
@@ -62,6 +63,14 @@ def set_logit_bias(path: Path, logit_bias: float, calibration: dict) -> Path:
 
 def load_member(path: Path, device: torch.device | str = "cpu") -> LamaGenerator:
     """The network stored at `path`, in float32 evaluation mode on `device`."""
+    return load_member_with_bias(path, device)[0]
+
+
+def load_member_with_bias(
+    path: Path, device: torch.device | str = "cpu"
+) -> tuple[LamaGenerator, float]:
+    """The network stored at `path` (float32, evaluation mode, on `device`) and the bias
+    to add to its logits, from one read of the file."""
     payload = _read(path)
     try:
         model = LamaGenerator(NetworkConfig(**payload["network"]))
@@ -70,12 +79,16 @@ def load_member(path: Path, device: torch.device | str = "cpu") -> LamaGenerator
         raise WeightsError(
             f"{path}: not a weights file of this network ({_first_line(error)})"
         ) from None
-    return model.to(device).eval()
+    return model.to(device).eval(), _logit_bias(payload)
 
 
 def read_logit_bias(path: Path) -> float:
     """The bias to add to the logits of the network at `path` (0 in files without one)."""
-    return float(_read(path).get("logit_bias", 0.0))
+    return _logit_bias(_read(path))
+
+
+def _logit_bias(payload: dict) -> float:
+    return float(payload.get("logit_bias", 0.0))
 
 
 def read_metadata(path: Path) -> dict:
