@@ -128,6 +128,7 @@ class PredictorEvaluationConfig:
 
     snapshot_times: tuple[int, ...] = (100, 300, 600)
     near_known_cells: int = 10  # 1 m: unknown cells this close to a known one are "near"
+    target_margin_iou: float = 0.10  # the lead over the classical IoU that G should reach
 
 
 @dataclass(frozen=True)

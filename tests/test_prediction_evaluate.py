@@ -3,18 +3,23 @@
 import numpy as np
 import pytest
 
+from mapex.config import PredictorEvaluationConfig
 from mapex.grid import FREE, UNKNOWN
 from mapex.prediction.base import EnsemblePrediction
 from mapex.prediction.evaluate import (
     CellScores,
     SnapshotScore,
     auroc,
+    format_ceiling_table,
     format_split_table,
     format_table,
+    local_ceiling_iou,
     main,
     near_known,
+    outside_building,
     score_cells,
 )
+from mapex.worlds.base import World
 
 
 @pytest.mark.parametrize(
@@ -59,7 +64,9 @@ def test_score_cells_judges_g_classical_and_unknown_free_on_the_same_cells():
 
 def _score(world: str, t: int, g: float, classical: float) -> SnapshotScore:
     cells = CellScores(g, classical, 0.0, 0.6)
-    return SnapshotScore(world, 0, t, cells, cells, CellScores(g / 2, 0.0, 0.0, 0.5))
+    return SnapshotScore(
+        world, 0, t, cells, cells, CellScores(g / 2, 0.0, 0.0, 0.5), 2 * g, g + 0.1
+    )
 
 
 def test_tables_have_a_row_per_map_and_time_and_an_overall_mean():
@@ -70,6 +77,25 @@ def test_tables_have_a_row_per_map_and_time_and_an_overall_mean():
     split = format_split_table(scores, 10).splitlines()
     assert "within 1 m" in split[0]
     assert split[5] == "| b | 300 | 0.600 / 0.300 | 0.300 / 0.000 | 0.600 / 0.500 |"
+    ceiling = format_ceiling_table(scores, PredictorEvaluationConfig()).splitlines()
+    assert "classical + 0.10" in ceiling[2]
+    assert ceiling[4] == "| a | 100 | 0.200 | 0.300 | 0.600 | 0.300 | 0.400 |"
+
+
+def test_outside_building_is_the_free_space_beyond_the_valid_space():
+    occupancy = np.array([[False, True, False, False, True, False]])
+    valid = np.array([[False, False, True, True, False, False]])
+    world = World("strip", occupancy, valid)
+    np.testing.assert_array_equal(outside_building(world)[0], [1, 0, 0, 0, 0, 1])
+
+
+def test_local_ceiling_is_perfect_near_the_known_map_and_free_beyond():
+    truth = np.array([[True, False, True, True, False, True]])
+    cells = np.array([[True, True, True, True, True, False]])
+    near = np.array([[True, True, True, False, False, False]])
+    # found: the near wall at 0 and 2; missed: the far wall at 3; cell 5 is not scored
+    assert local_ceiling_iou(truth, cells, near) == pytest.approx(2 / 3)
+    assert local_ceiling_iou(truth, cells, np.ones_like(near)) == 1.0
 
 
 def test_a_missing_map_is_a_one_line_error(tmp_path, capsys):

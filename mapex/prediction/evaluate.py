@@ -6,7 +6,12 @@ the *unknown* cells inside the building footprint (the part that is actually
 predicted) is measured for G, for the classical predictor and for "unknown = free",
 and the ensemble variance is scored as a detector of G's wrong cells (AUROC). A second
 table splits both by distance from the known map: near it, walls continue what is seen;
-far from it, the predictor has to guess whole rooms.
+far from it, the predictor has to guess whole rooms. A third table sets G against a
+ceiling: a perfect predictor that paints walls only near the known map (the ground
+truth there, free beyond), which is the best any local predictor, such as the classical
+one, could score; and G's IoU once its walls in the free space just outside the building
+(inside the footprint's margin) are taken away, to show how much of G's error is a too
+thick outer wall.
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ from mapex.prediction.classical import distance_to_known
 from mapex.prediction.dataset import snapshots_at
 from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
 from mapex.worlds import WorldError, load_world, start_poses
+from mapex.worlds.base import World
 
 KTH_DEV_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "kth_dev"
 VALIDATION_MAPS = ("50037764_PLAN1", "50052748")
@@ -57,6 +63,8 @@ class SnapshotScore:
     all: CellScores
     near: CellScores
     far: CellScores
+    local_ceiling: float  # IoU of the perfect near-only predictor (local_ceiling_iou)
+    g_inside_only: float  # G's IoU with its walls outside the building taken away
 
 
 def auroc(scores: np.ndarray, labels: np.ndarray) -> float:
@@ -89,6 +97,18 @@ def score_cells(
 def near_known(observed: np.ndarray, within_cells: int) -> np.ndarray:
     """Cells (bool) at most `within_cells` (Euclidean) from a known cell."""
     return distance_to_known(observed == UNKNOWN) <= within_cells
+
+
+def local_ceiling_iou(truth: np.ndarray, cells: np.ndarray, near: np.ndarray) -> float:
+    """Occupied IoU over `cells` of a perfect predictor that paints walls only in `near`
+    (the ground truth there, free beyond): what a predictor that only continues the walls
+    it sees could reach at best."""
+    return occupied_iou(truth & near, truth, cells)
+
+
+def outside_building(world: World) -> np.ndarray:
+    """Free cells (bool) outside the building's valid space: beyond its outer walls."""
+    return ~world.valid_space & ~world.occupancy
 
 
 def evaluate(
@@ -124,7 +144,10 @@ def evaluate(
                 score_cells(world.occupancy, part, prediction, classical_main, threshold)
                 for part in split
             ]
-            scores.append(SnapshotScore(world.name, start_index, t, *values))
+            ceiling = local_ceiling_iou(world.occupancy, cells, near)
+            walls_g = (prediction.main >= threshold) & ~outside_building(world)
+            inside_only = occupied_iou(walls_g, world.occupancy, cells)
+            scores.append(SnapshotScore(world.name, start_index, t, *values, ceiling, inside_only))
             if figure is not None and (map_dir, start_index, t) == drawn:
                 draw_prediction(figure, world, observed, prediction, t)
     return scores
@@ -187,6 +210,29 @@ def format_split_table(scores: list[SnapshotScore], near_known_cells: int) -> st
     return "\n".join(lines)
 
 
+def format_ceiling_table(scores: list[SnapshotScore], settings: PredictorEvaluationConfig) -> str:
+    """Markdown table: G and classical IoU against the near-only ceiling and the target."""
+    metres = settings.near_known_cells * RESOLUTION_M
+    margin = settings.target_margin_iou
+    lines = [
+        f"Against the best a local predictor could do (the ground truth within {metres:g} m of "
+        f"a known cell, free beyond) and the target (classical + {margin:.2f}):",
+        "",
+        f"| map | t | IoU classical | IoU G | IoU perfect within {metres:g} m | "
+        f"classical + {margin:.2f} | IoU G, no walls outside the building |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for (world, t), group in _groups(scores):
+        g, c, _, _ = _means([s.all for s in group])
+        ceiling = float(np.mean([s.local_ceiling for s in group]))
+        inside_only = float(np.mean([s.g_inside_only for s in group]))
+        lines.append(
+            f"| {world} | {t} | {c:.3f} | {g:.3f} | {ceiling:.3f} | {c + margin:.3f} "
+            f"| {inside_only:.3f} |"
+        )
+    return "\n".join(lines)
+
+
 def _groups(scores: list[SnapshotScore]) -> list[tuple[tuple[str, int | str], list]]:
     """(map, t) groups in order, then ("all", "-") with every score."""
     groups: dict[tuple[str, int | str], list[SnapshotScore]] = {}
@@ -240,6 +286,8 @@ def main(argv: list[str] | None = None) -> int:
     print(format_table(scores))
     print()
     print(format_split_table(scores, settings.near_known_cells))
+    print()
+    print(format_ceiling_table(scores, settings))
     return 0
 
 
