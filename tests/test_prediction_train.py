@@ -8,7 +8,7 @@ import torch
 from tiny_training import SMALL, TINY, tiny_snapshots
 
 import mapex.prediction.train as train
-from mapex.config import apply_overrides
+from mapex.config import ConfigError, apply_overrides
 from mapex.prediction.dataset import (
     CropSampler,
     SnapshotSet,
@@ -102,6 +102,21 @@ def test_loader_workers_draw_a_seeded_order(snapshots, tmp_path):
     _assert_same_weights(first, second)  # the same, however the workers were scheduled
     alone = load_member(_train(snapshots, TINY, tmp_path / "c")).state_dict()
     assert not torch.equal(load_member(first).state_dict()["stem.1.weight"], alone["stem.1.weight"])
+
+
+def test_each_precision_trains_deterministically_and_they_differ(snapshots, tmp_path):
+    mixed_config = apply_overrides(TINY, ["precision=bfloat16"])
+    plain = [_train(snapshots, TINY, tmp_path / name) for name in ("a", "b")]  # float32
+    mixed = [_train(snapshots, mixed_config, tmp_path / name) for name in ("c", "d")]
+    _assert_same_weights(*plain)
+    _assert_same_weights(*mixed)
+    stem = [load_member(path).state_dict()["stem.1.weight"] for path in (plain[0], mixed[0])]
+    assert TINY.precision == "float32" and not torch.equal(*stem)
+
+
+def test_an_unknown_precision_is_refused():
+    with pytest.raises(ConfigError, match="choose one of"):
+        apply_overrides(TINY, ["precision=float16"])
 
 
 def test_the_network_size_is_set_from_the_command_line(snapshots, tmp_path):

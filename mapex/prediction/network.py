@@ -26,6 +26,7 @@ from torch.nn import functional as F
 from mapex.config import NetworkConfig
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
 
+AUTOCAST_DTYPES = {"bfloat16": torch.bfloat16, "float32": None}  # Precision -> autocast dtype
 INPUT_CHANNELS = 3  # free, occupied, unknown (one-hot of the observed codes)
 OUTSIDE_MAP = np.uint8(255)  # not a map code: a cell beyond the map's border (all-zero encoding)
 
@@ -37,6 +38,13 @@ def encode_observed(observed: np.ndarray) -> np.ndarray:
     return np.stack([observed == FREE, observed == OCCUPIED, observed == UNKNOWN]).astype(
         np.float32
     )
+
+
+def autocast(device: torch.device, precision: str):
+    """The context in which a forward pass runs at `precision` ("bfloat16": autocast,
+    "float32": plain) on `device`."""
+    dtype = AUTOCAST_DTYPES[precision]
+    return torch.autocast(device.type, dtype=dtype or torch.float32, enabled=dtype is not None)
 
 
 class FourierUnit(nn.Module):

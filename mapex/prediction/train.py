@@ -33,7 +33,7 @@ from mapex.prediction.dataset import (
     collect_snapshots,
     training_world_specs,
 )
-from mapex.prediction.network import LamaGenerator
+from mapex.prediction.network import LamaGenerator, autocast
 from mapex.prediction.weights import (
     MEMBER_NAMES,
     WEIGHTS_DIR,
@@ -103,7 +103,9 @@ def train_member(
     bar = tqdm(range(start, steps), initial=start, total=steps, desc=f"train {name}", unit="step")
     for step, batch in zip(bar, batches, strict=False):  # the batch stream is endless
         inputs, walls, masks = (a.to(device, non_blocking=True) for a in batch)
-        loss = masked_loss(model(inputs), walls, masks, config.wall_weight)
+        with autocast(device, config.precision):
+            logits = model(inputs).float()
+        loss = masked_loss(logits, walls, masks, config.wall_weight)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
