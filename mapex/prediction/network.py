@@ -23,10 +23,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from mapex.config import NetworkConfig
+from mapex.config import NetworkConfig, Precision
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
 
-AUTOCAST_DTYPES = {"bfloat16": torch.bfloat16, "float32": None}  # Precision -> autocast dtype
 INPUT_CHANNELS = 3  # free, occupied, unknown (one-hot of the observed codes)
 OUTSIDE_MAP = np.uint8(255)  # not a map code: a cell beyond the map's border (all-zero encoding)
 
@@ -40,11 +39,10 @@ def encode_observed(observed: np.ndarray) -> np.ndarray:
     )
 
 
-def autocast(device: torch.device, precision: str):
-    """The context in which a forward pass runs at `precision` ("bfloat16": autocast,
-    "float32": plain) on `device`."""
-    dtype = AUTOCAST_DTYPES[precision]
-    return torch.autocast(device.type, dtype=dtype or torch.float32, enabled=dtype is not None)
+def autocast(device: torch.device, precision: Precision) -> torch.autocast:
+    """The context in which a forward pass on `device` runs at `precision`: under bfloat16
+    autocast, or plain float32."""
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bfloat16")
 
 
 class FourierUnit(nn.Module):
