@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapex.config import ExplorationConfig
+from mapex.config import PRECISIONS, ExplorationConfig
 from mapex.episode import run_episode
 from mapex.explorer import Explorer
 from mapex.frontiers import extract_frontiers
@@ -57,7 +57,7 @@ def report(name: str, value_ms: float, detail: str = "") -> None:
     verdict = ""
     if target is not None:
         verdict = f"  target <= {target:g} ms: {'met' if value_ms <= target else 'MISSED'}"
-    print(f"{name:<34} {value_ms:10.2f} ms{verdict}{('  ' + detail) if detail else ''}", flush=True)
+    print(f"{name:<44} {value_ms:10.2f} ms{verdict}{('  ' + detail) if detail else ''}", flush=True)
 
 
 def bench_scan(world, config: ExplorationConfig, repeats: int) -> None:
@@ -148,20 +148,23 @@ def bench_astar(world, config: ExplorationConfig, repeats: int) -> None:
 
 
 def bench_learned(world, repeats: int) -> None:
-    """The learned ensemble on the whole map: one member on one thread, all four on two."""
+    """The learned ensemble on the whole map: one member on one thread, all four on two; in
+    float32 (the targets) and in bfloat16 (`--precision bfloat16`, no target)."""
     import torch
 
     from mapex.prediction.learned import LearnedEnsemble
 
     observed = explored_state(world, ExplorationConfig(), steps=300).observed
-    predictor = LearnedEnsemble()
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    one = median_ms(lambda: predictor.predict_members(observed, (0,)), repeats)
-    report("one member, whole map, 1 thread", one)
-    torch.set_num_threads(2)
-    four = median_ms(lambda: predictor.predict_members(observed, range(4)), repeats)
-    report("four members, whole map, 2 threads", four)
+    for precision in PRECISIONS:
+        predictor = LearnedEnsemble(precision=precision)
+        suffix = "" if precision == "float32" else f", {precision}"
+        torch.set_num_threads(1)
+        one = median_ms(lambda p=predictor: p.predict_members(observed, (0,)), repeats)
+        report(f"one member, whole map, 1 thread{suffix}", one)
+        torch.set_num_threads(2)
+        four = median_ms(lambda p=predictor: p.predict_members(observed, range(4)), repeats)
+        report(f"four members, whole map, 2 threads{suffix}", four)
     torch.set_num_threads(threads)
 
 

@@ -8,7 +8,13 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from mapex.config import ConfigError, ExplorationConfig, add_override_argument, apply_overrides
+from mapex.config import (
+    ConfigError,
+    ExplorationConfig,
+    add_override_argument,
+    add_precision_argument,
+    apply_overrides,
+)
 from mapex.methods import METHODS
 from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
 from mapex.prediction.weights import WeightsError
@@ -46,6 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
         "package) or 'classical' (OpenCV inpainting); also used for the IoU/TU metrics; "
         "default: %(default)s",
     )
+    add_precision_argument(run)
     run.add_argument("--steps", type=int, default=1000, help="time budget T; default: %(default)s")
     run.add_argument(
         "--start", type=int, default=0, choices=range(4), help="start pose (corner 0-3); default: 0"
@@ -59,6 +66,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def predictor_options(args: argparse.Namespace) -> dict:
+    """Keyword arguments of the chosen predictor from the flags (only 'lama' has a precision)."""
+    if args.predictor == "lama":
+        return {"precision": args.precision}
+    if args.precision != "float32":
+        raise ConfigError(f"--precision {args.precision}: only the 'lama' predictor has one")
+    return {}
+
+
 def run_command(args: argparse.Namespace) -> int:
     from mapex.episode import run_episode
     from mapex.results import run_name, write_results
@@ -67,7 +83,7 @@ def run_command(args: argparse.Namespace) -> int:
         raise ConfigError(f"--steps must be at least 1 (got {args.steps})")
     config = apply_overrides(ExplorationConfig(steps=args.steps), args.overrides)
     world = load_world(args.world)
-    predictor = make_predictor(args.predictor)
+    predictor = make_predictor(args.predictor, **predictor_options(args))
     with tqdm(
         total=config.steps,
         desc=f"{args.method} on {world.name}",

@@ -34,6 +34,7 @@ from mapex.config import (
     ExplorationConfig,
     ServicesConfig,
     add_override_argument,
+    add_precision_argument,
     apply_overrides,
 )
 from mapex.methods import ABLATIONS, MAIN_COMPARISON, METHODS
@@ -175,7 +176,9 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
     supervisor = Supervisor(services=services)
     try:
         if todo:
-            for spec in worker_specs(args.members, args.replicas, args.threads, flags):
+            for spec in worker_specs(
+                args.members, args.replicas, args.threads, flags, args.precision
+            ):
                 supervisor.start(spec)
         done, failures = run_episodes(supervisor, todo, args, flags, progress, stop)
     finally:
@@ -252,6 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--replicas", type=int, default=1, help="workers per member (default 1)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads per worker")
+    add_precision_argument(parser)
     parser.add_argument("--no-report", action="store_true", help="skip the report at the end")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     add_zenoh_arguments(parser, HUB_HELP)

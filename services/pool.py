@@ -13,7 +13,7 @@ import threading
 
 import zenoh
 
-from mapex.config import ServicesConfig
+from mapex.config import Precision, ServicesConfig
 from mapex.prediction.base import MEMBER_NAMES
 from services.codec import ProtocolError
 from services.keys import RobotKey, RobotTopic, parse_key, robot_key_pattern
@@ -36,14 +36,19 @@ def parse_member_list(text: str) -> tuple[str, ...]:
 
 
 def worker_specs(
-    members: tuple[str, ...], replicas: int, threads: int, zenoh_flags: list[str]
+    members: tuple[str, ...],
+    replicas: int,
+    threads: int,
+    zenoh_flags: list[str],
+    precision: Precision = "float32",
 ) -> list[ProcessSpec]:
     """`replicas` predictor workers per member, restarted when they die."""
+    flags = ("--threads", str(threads), "--precision", precision, *zenoh_flags)
     return [
         ProcessSpec(
             f"predictor-{member}" + (f"-{replica}" if replicas > 1 else ""),
             "services.predictor",
-            ("--member", member, "--threads", str(threads), *zenoh_flags),
+            ("--member", member, *flags),
             restart=True,
         )
         for member in members

@@ -1,7 +1,8 @@
 """A predictor worker: serves prediction queries for one ensemble member over Zenoh.
 
     python -m services.predictor --member g [--worker-id ID] [--weights-dir DIR]
-        [--device cpu|cuda] [--threads 1] [--mode ...] [--connect ...] [--listen ...]
+        [--device cpu|cuda] [--threads 1] [--precision float32|bfloat16]
+        [--mode ...] [--connect ...] [--listen ...]
 
 The worker loads its member's weights, declares a queryable on
 `mapex/@v1/predict/<member>/<worker_id>` and then a liveliness token on
@@ -27,7 +28,7 @@ from pathlib import Path
 
 import zenoh
 
-from mapex.config import ServicesConfig
+from mapex.config import Precision, ServicesConfig, add_precision_argument
 from mapex.prediction.base import Predictor
 from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
 from services.codec import DEFAULT_SERVICES, Payload, ProtocolError
@@ -113,6 +114,7 @@ def main(
     threads: int = DEFAULT_SERVICES.predictor_threads,
     stop: threading.Event | None = None,
     services: ServicesConfig = DEFAULT_SERVICES,
+    precision: Precision = "float32",
 ) -> int:
     """Load `member`'s weights, then serve it until `stop` is set; return the queries answered.
 
@@ -123,7 +125,9 @@ def main(
 
     return_freed_memory()
 
-    predictor = LearnedEnsemble(Path(weights_dir), device, threads, members=(member,))
+    predictor = LearnedEnsemble(
+        Path(weights_dir), device, threads, members=(member,), precision=precision
+    )
     session = open_session(config)
     try:
         server = MemberServer(predictor, member, worker_id)
@@ -154,6 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=DEFAULT_SERVICES.predictor_threads,
         help="torch CPU threads (default: one, as several workers share the machine)",
     )
+    add_precision_argument(parser)
     add_zenoh_arguments(parser)
     return parser
 
@@ -169,7 +174,14 @@ def run_cli(argv: list[str] | None = None) -> int:
     try:
         config = zenoh_config_from_args(args)
         answered = main(
-            config, args.member, worker_id, args.weights_dir, args.device, args.threads, stop
+            config,
+            args.member,
+            worker_id,
+            args.weights_dir,
+            args.device,
+            args.threads,
+            stop,
+            precision=args.precision,
         )
     except (WeightsError, ZenohConfigError) as error:
         log.error("%s", error)

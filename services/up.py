@@ -33,6 +33,7 @@ from mapex.config import (
     ExplorationConfig,
     ServicesConfig,
     add_override_argument,
+    add_precision_argument,
     apply_overrides,
 )
 from mapex.methods import METHODS
@@ -83,7 +84,7 @@ def plan_runs(args: argparse.Namespace) -> list[Run]:
 
 def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str]) -> dict:
     """Process specs by role: 'workers', 'worlds', 'planners'."""
-    workers = worker_specs(args.members, args.replicas, args.threads, zenoh_flags)
+    workers = worker_specs(args.members, args.replicas, args.threads, zenoh_flags, args.precision)
     worlds, planners = [], []
     for run in runs:
         starts = ",".join(str(s) for s in run.starts)
@@ -200,6 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--replicas", type=int, default=1, help="workers per member (default 1)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads per worker")
+    add_precision_argument(parser)
     parser.add_argument(
         "--out", type=Path, default=None, help="results parent folder (default: as mapex run)"
     )

@@ -49,6 +49,8 @@ def test_run_writes_the_results_folder(tmp_path):
         (["--steps", "0"], "--steps"),
         (["--set", "visibility.nosuch=1"], "nosuch"),
         (["--start", "7"], "invalid choice"),
+        (["--precision", "float16"], "invalid choice"),
+        (["--predictor", "classical", "--precision", "bfloat16"], "only the 'lama' predictor"),
     ],
 )
 def test_bad_input_gives_one_line_error(args, message):

@@ -1,6 +1,14 @@
+import argparse
+
 import pytest
 
-from mapex.config import ConfigError, ExplorationConfig, PredictorTrainingConfig, apply_overrides
+from mapex.config import (
+    ConfigError,
+    ExplorationConfig,
+    PredictorTrainingConfig,
+    add_precision_argument,
+    apply_overrides,
+)
 
 
 def test_override_sets_typed_values():
@@ -45,3 +53,13 @@ def test_bad_overrides_are_one_line_errors(override, message):
     with pytest.raises(ConfigError, match=message) as info:
         apply_overrides(ExplorationConfig(), [override])
     assert "\n" not in str(info.value)
+
+
+def test_precision_flag_defaults_to_float32_and_refuses_others(capsys):
+    parser = argparse.ArgumentParser()
+    add_precision_argument(parser)
+    assert parser.parse_args([]).precision == "float32"
+    assert parser.parse_args(["--precision", "bfloat16"]).precision == "bfloat16"
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--precision", "float16"])
+    assert "invalid choice: 'float16'" in capsys.readouterr().err

@@ -65,6 +65,24 @@ def test_prediction_is_deterministic(random_weights):
     )
 
 
+def test_bfloat16_is_close_to_float32_deterministic_and_copies_known_cells(random_weights):
+    observed = partly_observed()
+    exact = LearnedEnsemble(random_weights).predict(observed).members
+    mixed = LearnedEnsemble(random_weights, precision="bfloat16")
+    fast = mixed.predict(observed).members
+    assert fast.dtype == np.float32 and fast.shape == exact.shape
+    known = observed != UNKNOWN
+    np.testing.assert_array_equal(fast[:, known], exact[:, known])
+    difference = np.abs(fast - exact)[:, ~known]
+    assert 0 < difference.max() < 0.05  # another precision, not another network
+    np.testing.assert_array_equal(fast, mixed.predict(observed).members)
+
+
+def test_an_unknown_precision_is_refused(random_weights):
+    with pytest.raises(ValueError, match="float16.*float32, bfloat16"):
+        LearnedEnsemble(random_weights, precision="float16")
+
+
 def test_missing_or_broken_weights_are_one_line_errors(tmp_path):
     with pytest.raises(WeightsError, match="no weights file"):
         LearnedEnsemble(tmp_path)

@@ -30,6 +30,13 @@ def test_worker_specs_name_replicas_and_restart_them():
     assert [s.name for s in worker_specs(("g",), 1, 1, [])] == ["predictor-g"]
 
 
+def test_worker_specs_pass_threads_and_precision():
+    (spec,) = worker_specs(("g1",), 1, 3, [], "bfloat16")
+    assert spec.args == ("--member", "g1", "--threads", "3", "--precision", "bfloat16")
+    (default,) = worker_specs(("g",), 1, 1, [])
+    assert default.args[-2:] == ("--precision", "float32")
+
+
 def test_a_given_hub_is_joined_and_passed_to_every_child():
     config, flags = hub_session_config(
         zenoh_args(mode="client", connect=["tcp/10.0.0.5:7447"]), ServicesConfig()

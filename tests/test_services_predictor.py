@@ -217,6 +217,7 @@ def test_sigint_stops_a_worker_cleanly(pool, ensemble):
         (["--member", "g", "--weights-dir", "{missing}"], "no weights file"),
         (["--member", "g", "--worker-id", "Bad Id"], "'Bad Id' must match"),
         (["--member", "g", "--listen", "tcp/127.0.0.1:99999"], "cannot open a Zenoh session"),
+        (["--member", "g", "--precision", "float16"], "invalid choice: 'float16'"),
     ],
 )
 def test_bad_flags_and_missing_weights_are_one_line_errors(flags, message, tmp_path, weights_dir):

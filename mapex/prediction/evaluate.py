@@ -26,7 +26,12 @@ import numpy as np
 from scipy.stats import rankdata
 from tqdm import tqdm
 
-from mapex.config import ExplorationConfig, PredictorEvaluationConfig
+from mapex.config import (
+    ExplorationConfig,
+    Precision,
+    PredictorEvaluationConfig,
+    add_precision_argument,
+)
 from mapex.grid import RESOLUTION_M, UNKNOWN, observed_to_probability
 from mapex.metrics import building_footprint, occupied_iou
 from mapex.plotting import occupancy_image, plt
@@ -116,10 +121,11 @@ def evaluate(
     settings: PredictorEvaluationConfig,
     figure: Path | None,
     weights_dir: Path = WEIGHTS_DIR,
+    precision: Precision = "float32",
 ) -> list[SnapshotScore]:
-    """Score every (map, start, time) snapshot of the ensemble in `weights_dir`; optionally
-    draw one of them."""
-    learned = make_predictor("lama", weights_dir=weights_dir)
+    """Score every (map, start, time) snapshot of the ensemble in `weights_dir`, run at
+    `precision`; optionally draw one of them."""
+    learned = make_predictor("lama", weights_dir=weights_dir, precision=precision)
     classical = make_predictor("classical")
     config = ExplorationConfig()
     threshold = config.metrics.prediction_threshold
@@ -274,12 +280,13 @@ def main(argv: list[str] | None = None) -> int:
         help="the ensemble to score: a folder written by mapex.prediction.train --out "
         "(default: the shipped weights)",
     )
+    add_precision_argument(parser)
     args = parser.parse_args(argv)
     settings = dataclasses.replace(defaults, snapshot_times=tuple(sorted(set(args.times))))
     if min(settings.snapshot_times) < 0:
         parser.error("--times must be >= 0")
     try:
-        scores = evaluate(args.maps, settings, args.figure, args.weights)
+        scores = evaluate(args.maps, settings, args.figure, args.weights, args.precision)
     except (WorldError, WeightsError) as error:
         print(f"mapex.prediction.evaluate: error: {error}", file=sys.stderr)
         return 2

@@ -5,7 +5,10 @@ mapex.prediction.train`); they load on CPU with no GPU present and use a GPU whe
 asked. A member's stored logit bias is added to its output: G's calibrated decision
 threshold (`mapex.prediction.calibration`), 0 for G_1..G_3. Torch runs with
 `threads` CPU threads (all cores when alone on the machine, one per worker when
-several share it).
+several share it). With `precision="bfloat16"` the forward pass runs under bfloat16
+autocast: about twice as fast on CPUs with AVX512-BF16 or AMX and on GPUs (slower on
+CPUs without them); probabilities move by at most about 0.01. float32 is the default,
+with which every figure in the README was measured.
 """
 
 from __future__ import annotations
@@ -16,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mapex.config import NetworkConfig
+from mapex.config import PRECISIONS, NetworkConfig, Precision
 from mapex.prediction.base import Predictor
-from mapex.prediction.network import encode_observed
+from mapex.prediction.network import autocast, encode_observed
 from mapex.prediction.weights import MEMBER_NAMES, WEIGHTS_DIR, load_member_with_bias
 
 
@@ -34,7 +37,11 @@ class LearnedEnsemble(Predictor):
         device: str = "cpu",
         threads: int | None = None,
         members: Sequence[str] = MEMBER_NAMES,
+        precision: Precision = "float32",
     ) -> None:
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision {precision!r}: choose from {', '.join(PRECISIONS)}")
+        self.precision = precision
         if threads is not None:
             torch.set_num_threads(threads)
         self.device = torch.device(device)
@@ -50,8 +57,9 @@ class LearnedEnsemble(Predictor):
         if observed.size == 0:
             return np.zeros((len(members), *observed.shape), dtype=np.float32)
         inputs = torch.from_numpy(encode_observed(observed))[None].to(self.device)
-        with torch.inference_mode():
+        with torch.inference_mode(), autocast(self.device, self.precision):
             outputs = [
-                torch.sigmoid(self.models[k](inputs) + self.logit_biases[k])[0, 0] for k in members
+                torch.sigmoid(self.models[k](inputs).float() + self.logit_biases[k])[0, 0]
+                for k in members
             ]
         return torch.stack(outputs).float().cpu().numpy()
