@@ -62,4 +62,4 @@ class LearnedEnsemble(Predictor):
                 torch.sigmoid(self.models[k](inputs).float() + self.logit_biases[k])[0, 0]
                 for k in members
             ]
-        return torch.stack(outputs).float().cpu().numpy()
+        return torch.stack(outputs).cpu().numpy()
