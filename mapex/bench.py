@@ -189,7 +189,11 @@ def bench_episode(world, config: ExplorationConfig, repeats: int, predictor_name
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m mapex.bench", description=__doc__)
-    parser.add_argument("--world", default=str(DEFAULT_MAP), help="KTH map dir or generated:SEED")
+    parser.add_argument(
+        "--world",
+        default=str(DEFAULT_MAP),
+        help="KTH map dir, generated:SEED or generated-open:SEED",
+    )
     parser.add_argument("--repeats", type=int, default=50, help="repeats of the small benchmarks")
     parser.add_argument("--episodes", type=int, default=3, help="repeats of the episode benchmark")
     parser.add_argument("--steps", type=int, default=1000, help="episode length")

@@ -38,7 +38,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--world",
         default=DEFAULT_WORLD,
-        help=f"a KTH map directory (occ_map.npy + valid_space.npy), 'generated:SEED' or "
+        help="a KTH map directory (occ_map.npy + valid_space.npy), 'generated:SEED', "
+        "'generated-open:SEED' (free space outside) or "
         f"'default' (= {DEFAULT_WORLD}); default: %(default)s",
     )
     run.add_argument(

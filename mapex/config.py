@@ -92,6 +92,9 @@ class NetworkConfig:
     context_cells: int = 32  # map around a predicted region that the network also sees
 
 
+MemberSplit = Literal["thirds", "by_source"]
+
+
 @dataclass(frozen=True)
 class PredictorTrainingConfig:
     """Data and schedule of `python -m mapex.prediction.train` (SPEC §4)."""
@@ -108,12 +111,19 @@ class PredictorTrainingConfig:
     frontier_share: float = 0.75  # crops centred near a frontier, the rest anywhere
     edge_overhang_cells: int = 64  # how far a crop may hang over the map's border
     batch_size: int = 8
-    main_steps: int = 2500  # G, on all data
-    member_steps: int = 600  # G_1..G_3, each fine-tuning G on a third of the worlds
+    main_steps: int = 6000  # G, on all data
+    member_steps: int = 1200  # G_1..G_3, each fine-tuning G on its part of the data
     members_from_main: bool = True  # G_1..G_3 fine-tune G (the paper's fine-tune one LaMa)
+    # G_k's data: "by_source" = G_1 and G_2 one KTH training map each, G_3 the procedural
+    # plans; "thirds" = the worlds whose index is k - 1 modulo 3.
+    member_split: MemberSplit = "by_source"
+    # Procedural plans with free space outside the building (generated-open:SEED), as in
+    # the KTH maps, instead of solid wall.
+    free_outside_plans: bool = True
     learning_rate: float = 2e-3
     weight_decay: float = 1e-4
     wall_weight: float = 2.0  # BCE weight of wall cells (walls are the rarer class)
+    member_wall_weight: float = 1.0  # the same for G_1..G_3's fine-tuning (plain cross-entropy)
     calibrate_main: bool = True  # after training G, choose its decision threshold (IoU)
     calibration_snapshots: int = 200  # training snapshots G's threshold is chosen on
     calibration_thresholds: tuple[float, ...] = tuple(round(0.2 + 0.025 * i, 3) for i in range(17))
@@ -121,9 +131,9 @@ class PredictorTrainingConfig:
     seed: int = 0
     data_workers: int = 0  # processes cutting crops (for a GPU); the count changes the crop order
     # Forward pass in training. "bfloat16" autocasts it (weights, loss and optimiser stay
-    # float32): about twice as fast on CPUs with AVX512-BF16 and on GPUs, but it writes other
-    # weights; the shipped ones were trained in float32.
-    precision: Precision = "float32"
+    # float32): about twice as fast on CPUs with AVX512-BF16 and on GPUs (slower on other
+    # CPUs). The shipped weights were trained in bfloat16; "float32" writes other weights.
+    precision: Precision = "bfloat16"
     network: NetworkConfig = field(default_factory=NetworkConfig)  # size of every member
 
 
@@ -214,6 +224,9 @@ class ProceduralConfig:
     outline_u_weight: float = 0.15
     outline_courtyard_weight: float = 0.2
     max_cutout_fraction: float = 0.4  # most of the building rectangle an outline may cut away
+    # Free space around the building and in its cut-away parts (as in the KTH maps),
+    # instead of solid wall; its worlds are named "generated-open:<seed>".
+    free_outside: bool = False
 
 
 InpaintMethod = Literal["ns", "telea"]

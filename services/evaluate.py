@@ -230,7 +230,7 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="+",
         required=True,
         metavar="MAP",
-        help="KTH map directories and/or generated:SEED worlds",
+        help="KTH map directories and/or generated:SEED / generated-open:SEED worlds",
     )
     parser.add_argument(
         "--methods",

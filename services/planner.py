@@ -198,7 +198,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--world",
         default=None,
         help="simulate this world here instead of asking a world process: 'default', "
-        "'generated:SEED' or a KTH map directory (needs --start)",
+        "'generated:SEED', 'generated-open:SEED' or a KTH map directory (needs --start)",
     )
     parser.add_argument("--start", type=int, choices=range(4), default=None, help="with --world")
     add_zenoh_arguments(parser)

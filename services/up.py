@@ -185,8 +185,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m services.up",
         description=__doc__.split("\n\n")[1].replace("\n", " "),
     )
-    parser.add_argument("--world", default=DEFAULT_SPEC, help="'default', 'generated:SEED' or a "
-                        "KTH map directory (default: %(default)s)")  # fmt: skip
+    parser.add_argument("--world", default=DEFAULT_SPEC, help="'default', 'generated:SEED', "
+                        "'generated-open:SEED' or a KTH map directory "
+                        "(default: %(default)s)")  # fmt: skip
     parser.add_argument("--method", default="mapex", choices=sorted(METHODS))
     parser.add_argument("--steps", type=int, default=1000, help="time budget T (default 1000)")
     parser.add_argument("--start", type=int, default=0, choices=range(4), help="first start pose")

@@ -261,7 +261,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--world",
         default=DEFAULT_SPEC,
-        help="'default', 'generated:<seed>' or a KTH map directory (default: %(default)s)",
+        help="'default', 'generated:<seed>', 'generated-open:<seed>' or a KTH map directory "
+        "(default: %(default)s)",
     )
     parser.add_argument("--run", required=True, help="run id, the <run> chunk of the keys")
     parser.add_argument("--robots", type=int, default=1, help="number of robots (default: 1)")

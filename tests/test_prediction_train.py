@@ -16,7 +16,7 @@ from mapex.prediction.dataset import (
 )
 from mapex.prediction.network import OUTSIDE_MAP
 from mapex.prediction.weights import WeightsError, load_member, read_metadata
-from mapex.worlds import load_world
+from mapex.worlds import World, load_world
 
 
 @pytest.fixture(scope="module")
@@ -137,6 +137,42 @@ def test_members_train_on_disjoint_worlds():
     seen = [set(train.member_snapshots(data, k).world_of) for k in (1, 2, 3)]
     assert seen == [{0}, {1}, {2}]
     assert set(train.member_snapshots(data, 0).world_of) == {0, 1, 2}
+
+
+def test_by_source_members_train_on_one_kth_map_each_and_the_procedural_plans():
+    kth = [World(name, np.zeros((4, 4), bool), np.ones((4, 4), bool)) for name in ("a", "b")]
+    worlds = [load_world("generated:0"), kth[0], load_world("generated-open:1"), kth[1]]
+    data = SnapshotSet(worlds, [np.zeros((4, 4), dtype=np.uint8)] * 8, np.repeat(np.arange(4), 2))
+    seen = [set(train.member_snapshots(data, k, "by_source").world_of) for k in (1, 2, 3)]
+    assert seen == [{1}, {3}, {0, 2}]
+
+
+def test_by_source_without_three_sources_is_refused_before_any_work(tmp_path, capsys):
+    status = train.main(["--out", str(tmp_path), "--no-kth", "--set", "member_split=by_source"])
+    error = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and error == [
+        "mapex.prediction.train: error: member_split=by_source gives each of g1..g3 one "
+        "source, but there are 0 KTH map(s) and procedural plans: give both KTH training maps "
+        "and procedural_worlds > 0, or member_split=thirds"
+    ]
+
+
+def test_members_use_their_own_wall_weight(snapshots, tmp_path, monkeypatch):
+    weights = []
+    real_loss = train.masked_loss
+    monkeypatch.setattr(train, "masked_loss", lambda *a: weights.append(a[3]) or real_loss(*a))
+    config = dataclasses.replace(TINY, wall_weight=2.0, member_wall_weight=1.0)
+    for member in (0, 1):
+        train.train_member(member, snapshots, config, torch.device("cpu"), tmp_path, False)
+    assert set(weights[: TINY.main_steps]) == {2.0}
+    assert set(weights[TINY.main_steps :]) == {1.0}
+
+
+def test_free_outside_plans_are_explored_as_generated_open_worlds():
+    config = dataclasses.replace(TINY, free_outside_plans=True, procedural_worlds=2)
+    assert training_world_specs(config, []) == [
+        f"generated-open:{config.first_procedural_seed + i}" for i in range(2)
+    ]
 
 
 def test_members_start_from_the_trained_main_model(snapshots, tmp_path):

@@ -162,6 +162,7 @@ def test_load_world_dispatches_on_the_spec(tmp_path: Path) -> None:
         ("generated:abc", "bad generated seed 'abc'"),
         ("generated:-3", "bad generated seed '-3'"),
         ("generated:", "bad generated seed ''"),
+        ("generated-open:1.5", "bad generated seed '1.5'"),
         ("no/such/dir", "no such map directory: no/such/dir"),
         ("", "empty world spec"),
     ],

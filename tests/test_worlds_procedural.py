@@ -1,4 +1,5 @@
-"""Procedural floor plans: deterministic, sealed, one connected building of many rooms."""
+"""Procedural floor plans: deterministic, sealed, one connected building of many rooms, with
+solid or free space outside."""
 
 from __future__ import annotations
 
@@ -10,8 +11,14 @@ import pytest
 from scipy import ndimage
 
 from mapex.config import ProceduralConfig
-from mapex.worlds import WorldError, generate_floor_plan
-from mapex.worlds.procedural import CORRIDOR_LABEL, FloorLayout, generate_layout, main
+from mapex.worlds import WorldError, generate_floor_plan, load_world
+from mapex.worlds.procedural import (
+    CORRIDOR_LABEL,
+    FloorLayout,
+    generate_layout,
+    main,
+    plan_config,
+)
 
 SEEDS = [0, 1, 3, 7, 11, 42]
 EIGHT = np.ones((3, 3), dtype=bool)
@@ -112,7 +119,35 @@ def test_bad_seed_is_rejected(seed) -> None:
         generate_floor_plan(seed)
 
 
-def test_demo_writes_a_png(tmp_path: Path) -> None:
+@pytest.mark.parametrize("flags", [[], ["--free-outside"]])
+def test_demo_writes_a_png(tmp_path: Path, flags: list[str]) -> None:
     out = tmp_path / "plan.png"
-    main(["--seed", "3", "--out", str(out)])
+    main(["--seed", "3", "--out", str(out), *flags])
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@cache
+def open_layout(seed: int) -> FloorLayout:
+    return generate_layout(seed, plan_config(free_outside=True))
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_a_free_outside_plan_is_the_same_building_with_free_space_around_it(seed: int) -> None:
+    walled, open_plan = layout(seed), open_layout(seed)
+    world = open_plan.world
+    assert world.name == f"generated-open:{seed}" == load_world(f"generated-open:{seed}").name
+    np.testing.assert_array_equal(open_plan.labels, walled.labels)
+    inside = walled.labels > 0
+    np.testing.assert_array_equal(world.occupancy[inside], walled.world.occupancy[inside])
+    outside_free = ~world.occupancy & ~inside
+    assert outside_free.sum() > 0.5 * (~inside).sum()  # mostly free; the outer walls remain
+    np.testing.assert_array_equal(world.valid_space, inside & ~world.occupancy)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_a_free_outside_plan_is_still_sealed(seed: int) -> None:
+    world = open_layout(seed).world
+    components, _ = ndimage.label(~world.occupancy, structure=EIGHT)
+    building = np.unique(components[world.valid_space])
+    assert len(building) == 1  # one connected building, which no free cell outside reaches
+    assert not np.isin(components[~world.occupancy & ~world.valid_space], building).any()

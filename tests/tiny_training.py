@@ -20,6 +20,7 @@ TINY = PredictorTrainingConfig(
     main_steps=4,
     member_steps=2,
     checkpoint_every_steps=2,
+    precision="float32",  # fast on every CPU
     network=SMALL,
 )
 

@@ -22,7 +22,14 @@ from mapex.methods import make_method
 from mapex.metrics import building_footprint
 from mapex.prediction.network import OUTSIDE_MAP
 from mapex.simulator import Simulator
-from mapex.worlds import World, load_world, start_poses
+from mapex.worlds import (
+    GENERATED_PREFIX,
+    OPEN_GENERATED_PREFIX,
+    World,
+    is_procedural,
+    load_world,
+    start_poses,
+)
 
 # Maps that share buildings with the held-back test maps (SPEC §1): never train on them.
 VALIDATION_ONLY_MAPS = ("50037764_PLAN1", "50052748")
@@ -42,17 +49,14 @@ class SnapshotSet:
         return SnapshotSet(self.worlds, [self.observed[i] for i in indices], self.world_of[indices])
 
 
-def is_procedural(world: World) -> bool:
-    return world.name.startswith("generated:")
-
-
 def training_world_specs(config: PredictorTrainingConfig, kth_dirs: list[str]) -> list[str]:
     """World specs to explore: procedural plans, then the allowed KTH training maps."""
     for directory in kth_dirs:
         if any(directory.rstrip("/").endswith(name) for name in VALIDATION_ONLY_MAPS):
             raise ValueError(f"{directory} is a validation-only map (SPEC §1): never train on it")
     first = config.first_procedural_seed
-    return [f"generated:{seed}" for seed in range(first, first + config.procedural_worlds)] + list(
+    prefix = OPEN_GENERATED_PREFIX if config.free_outside_plans else GENERATED_PREFIX
+    return [f"{prefix}{seed}" for seed in range(first, first + config.procedural_worlds)] + list(
         kth_dirs
     )
 

@@ -1,8 +1,9 @@
 """`python -m mapex.prediction.train`: train the LaMa-style ensemble and write its weights.
 
 G is trained on every snapshot; G_1..G_3 each on the snapshots of a disjoint third
-of the worlds (SPEC §4). Snapshots come from exploring procedural floor plans and
-the two KTH maps allowed for training. Checkpoints are written as training goes,
+of the worlds, or of one source each (`--set member_split=by_source`) (SPEC §4).
+Snapshots come from exploring procedural floor plans and the two KTH maps allowed
+for training. Checkpoints are written as training goes,
 so an interrupted run resumes with `--resume`. Once G is trained, its decision
 threshold is chosen on training snapshots (`mapex.prediction.calibration`);
 `--calibrate-only` does that alone for the G already in `--out`. The final weights
@@ -24,7 +25,7 @@ import torch
 from torch.nn import functional as F
 from tqdm import tqdm
 
-from mapex.config import ConfigError, PredictorTrainingConfig, apply_overrides
+from mapex.config import ConfigError, MemberSplit, PredictorTrainingConfig, apply_overrides
 from mapex.prediction.batches import batch_loader
 from mapex.prediction.calibration import calibrate_weights, describe
 from mapex.prediction.dataset import (
@@ -41,17 +42,30 @@ from mapex.prediction.weights import (
     load_member,
     save_weights,
 )
-from mapex.worlds import WorldError
+from mapex.worlds import World, WorldError, is_procedural
 
 DEFAULT_KTH_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "kth_dev"
 TRAINING_KTH_MAPS = ("50015847", "50015848")
 
 
-def member_snapshots(snapshots: SnapshotSet, member: int) -> SnapshotSet:
-    """G (member 0) sees every snapshot; G_k sees the worlds whose index is k - 1 modulo 3."""
+def member_snapshots(
+    snapshots: SnapshotSet, member: int, split: MemberSplit = "thirds"
+) -> SnapshotSet:
+    """G (member 0) sees every snapshot. G_k sees, with "thirds", the worlds whose index is
+    k - 1 modulo 3; with "by_source", the k-th of `world_sources`."""
     if member == 0:
         return snapshots
-    return snapshots.subset(snapshots.world_of % 3 == member - 1)
+    if split == "thirds":
+        return snapshots.subset(snapshots.world_of % 3 == member - 1)
+    source = world_sources(snapshots.worlds)[member - 1]
+    return snapshots.subset(np.isin(snapshots.world_of, source))
+
+
+def world_sources(worlds: list[World]) -> list[list[int]]:
+    """World indices by where they come from: each KTH map alone, then all procedural plans."""
+    kth = [[i] for i, world in enumerate(worlds) if not is_procedural(world)]
+    procedural = [i for i, world in enumerate(worlds) if is_procedural(world)]
+    return kth + ([procedural] if procedural else [])
 
 
 def masked_loss(logits: torch.Tensor, walls: torch.Tensor, mask: torch.Tensor, wall_weight: float):
@@ -72,7 +86,8 @@ def train_member(
     """Train one member with checkpoints; write its float16 weights; return their path."""
     name = MEMBER_NAMES[member]
     steps = config.main_steps if member == 0 else config.member_steps
-    data = member_snapshots(snapshots, member)
+    wall_weight = config.wall_weight if member == 0 else config.member_wall_weight
+    data = member_snapshots(snapshots, member, config.member_split)
     torch.manual_seed(config.seed + member)
     model = _initial_model(member, config, out_dir).to(device)
     optimizer = torch.optim.AdamW(
@@ -105,7 +120,7 @@ def train_member(
         inputs, walls, masks = (a.to(device, non_blocking=True) for a in batch)
         with autocast(device, config.precision):
             logits = model(inputs).float()
-        loss = masked_loss(logits, walls, masks, config.wall_weight)
+        loss = masked_loss(logits, walls, masks, wall_weight)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -182,7 +197,11 @@ def build_parser() -> argparse.ArgumentParser:
         default=DEFAULT_KTH_DIR,
         help="folder holding the KTH training maps 50015847 and 50015848 (default: %(default)s)",
     )
-    parser.add_argument("--no-kth", action="store_true", help="train on procedural plans only")
+    parser.add_argument(
+        "--no-kth",
+        action="store_true",
+        help="train on procedural plans only (with --set member_split=thirds)",
+    )
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoints")
     parser.add_argument(
         "--calibrate-only",
@@ -216,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
         kth_dirs = [] if args.no_kth else [str(args.kth_dir / m) for m in TRAINING_KTH_MAPS]
         specs = training_world_specs(config, kth_dirs)
         _check_enough_worlds(members, len(specs))
+        _check_sources(members, config, len(kth_dirs))
         print(f"collecting snapshots from {len(specs)} worlds ...", file=sys.stderr)
         snapshots = collect_snapshots(specs, config)
         print(f"{len(snapshots.observed)} snapshots", file=sys.stderr)
@@ -249,6 +269,17 @@ def _check_enough_worlds(members: list[int], n_worlds: int) -> None:
         raise ValueError(
             f"{n_worlds} training world(s), but {_names(members)} "
             f"need at least {needed}: raise procedural_worlds or give the KTH maps"
+        )
+
+
+def _check_sources(members: list[int], config: PredictorTrainingConfig, n_kth: int) -> None:
+    """Refuse, before any work, a by-source split without one source per member."""
+    n_sources = n_kth + (config.procedural_worlds > 0)
+    if config.member_split == "by_source" and any(members) and n_sources != len(MEMBER_NAMES) - 1:
+        raise ValueError(
+            f"member_split=by_source gives each of g1..g3 one source, but there are {n_kth} "
+            f"KTH map(s) and {'' if config.procedural_worlds else 'no '}procedural plans: "
+            "give both KTH training maps and procedural_worlds > 0, or member_split=thirds"
         )
 
 

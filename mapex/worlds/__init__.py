@@ -1,6 +1,7 @@
 """Ground-truth worlds (SPEC §1): KTH map directories, procedural floor plans, start poses.
 
-`load_world` turns a world spec into a World: "generated:<seed>", "default" (the
+`load_world` turns a world spec into a World: "generated:<seed>", "generated-open:<seed>"
+(the same plan with free space around the building, as in the KTH maps), "default" (the
 embedded default world, DEFAULT_WORLD) or the path of a KTH map directory.
 """
 
@@ -8,19 +9,19 @@ from __future__ import annotations
 
 from typing import Any
 
-from mapex.worlds.base import World, WorldError
+from mapex.worlds.base import GENERATED_PREFIX, OPEN_GENERATED_PREFIX, World, WorldError
 from mapex.worlds.kth import load_kth_map
 from mapex.worlds.starts import start_poses
 
 DEFAULT_WORLD = "generated:0"
 DEFAULT_SPEC = "default"
-GENERATED_PREFIX = "generated:"
 
 __all__ = [
     "DEFAULT_WORLD",
     "World",
     "WorldError",
     "generate_floor_plan",
+    "is_procedural",
     "load_kth_map",
     "load_world",
     "start_poses",
@@ -40,14 +41,24 @@ def __getattr__(name: str) -> Any:
 def load_world(spec: str) -> World:
     """The world named by `spec`; a one-line WorldError when it names none."""
     if not spec:
-        raise WorldError("empty world spec: expected 'default', 'generated:<seed>' or a directory")
+        raise WorldError(
+            "empty world spec: expected 'default', 'generated:<seed>', "
+            "'generated-open:<seed>' or a directory"
+        )
     if spec == DEFAULT_SPEC:
         spec = DEFAULT_WORLD
-    if spec.startswith(GENERATED_PREFIX):
-        from mapex.worlds.procedural import generate_floor_plan
+    for prefix, free_outside in ((GENERATED_PREFIX, False), (OPEN_GENERATED_PREFIX, True)):
+        if spec.startswith(prefix):
+            from mapex.worlds.procedural import generate_floor_plan, plan_config
 
-        return generate_floor_plan(_parse_seed(spec[len(GENERATED_PREFIX) :]))
+            seed = _parse_seed(spec[len(prefix) :])
+            return generate_floor_plan(seed, plan_config(free_outside))
     return load_kth_map(spec)
+
+
+def is_procedural(world: World) -> bool:
+    """Whether `world` is a procedural floor plan (of either kind)."""
+    return world.name.startswith((GENERATED_PREFIX, OPEN_GENERATED_PREFIX))
 
 
 def _parse_seed(text: str) -> int:

@@ -8,6 +8,9 @@ import numpy as np
 
 from mapex.grid import RESOLUTION_M
 
+GENERATED_PREFIX = "generated:"  # world names of procedural floor plans
+OPEN_GENERATED_PREFIX = "generated-open:"  # the same plans with free space outside
+
 
 class WorldError(ValueError):
     """A world that cannot be loaded or generated; the message is one line naming the cause."""

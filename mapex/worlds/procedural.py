@@ -9,7 +9,9 @@ between cross corridors and a block into rooms of a repeated module width, with 
 halls, inner rooms and closed corridor ends. Every space is an axis-aligned rectangle
 painted with its own label; walls go wherever labels change, and doors open along a
 spanning tree grown from the corridors, aligned along each block. Outside the building
-is wall (a sealed building). Finally the plan is transposed and flipped at random.
+is wall (a sealed building), or, with `free_outside`, free space beyond the outer walls as
+in the KTH maps (the building is still sealed). Finally the plan is transposed and
+flipped at random.
 
 Run `python -m mapex.worlds.procedural --seed 3 --out plan.png` to look at one.
 """
@@ -25,7 +27,7 @@ import numpy as np
 from scipy import ndimage
 
 from mapex.config import ProceduralConfig
-from mapex.worlds.base import World, WorldError
+from mapex.worlds.base import GENERATED_PREFIX, OPEN_GENERATED_PREFIX, World, WorldError
 
 CORRIDOR_LABEL = 1  # corridors and open areas share one label: no walls between them
 FIRST_ROOM_LABEL = 2
@@ -93,8 +95,14 @@ class FloorLayout:
 
 
 def generate_floor_plan(seed: int, config: ProceduralConfig = DEFAULT_CONFIG) -> World:
-    """The office floor plan of `seed`, named "generated:<seed>" (deterministic)."""
+    """The office floor plan of `seed` (deterministic), named "generated:<seed>", or
+    "generated-open:<seed>" with `config.free_outside`."""
     return generate_layout(seed, config).world
+
+
+def plan_config(free_outside: bool) -> ProceduralConfig:
+    """The default plan configuration, with free space outside the building or not."""
+    return replace(DEFAULT_CONFIG, free_outside=free_outside)
 
 
 def generate_layout(seed: int, config: ProceduralConfig = DEFAULT_CONFIG) -> FloorLayout:
@@ -119,13 +127,15 @@ def generate_layout(seed: int, config: ProceduralConfig = DEFAULT_CONFIG) -> Flo
     edges = _shared_edges([s.rect for s in spaces], config.door_width_min + 2 * (wall_cells + 1))
     _open_lobby(rng, spaces, edges, config)
     labels = _paint_labels(spaces, cutouts, (stack_len + 2 * margin, long_len + 2 * margin))
-    walls = _walls_from_labels(labels, wall_cells)
-    doors = _door_mask(rng, spaces, edges, wall_cells, labels.shape, config) & (labels > 0)
-    occupancy = _seal_unreachable(walls & ~doors)
+    outside = labels == 0
+    walls = _walls_from_labels(labels, wall_cells, wall_outside=not config.free_outside)
+    doors = _door_mask(rng, spaces, edges, wall_cells, labels.shape, config) & ~outside
+    occupancy = np.where(outside, walls, _seal_unreachable(walls & ~doors | outside))
 
     flips = (transposed, bool(rng.random() < 0.5), bool(rng.random() < 0.5))
     occupancy, labels, doors = (_orient(a, *flips) for a in (occupancy, labels, doors))
-    world = World(f"generated:{seed}", occupancy, ~occupancy)
+    prefix = OPEN_GENERATED_PREFIX if config.free_outside else GENERATED_PREFIX
+    world = World(f"{prefix}{seed}", occupancy, (labels > 0) & ~occupancy)
     return FloorLayout(world, labels, doors & ~occupancy)
 
 
@@ -612,8 +622,9 @@ def _paint_labels(spaces: list[_Space], cutouts: list[Rect], shape: tuple[int, i
     return labels
 
 
-def _walls_from_labels(labels: np.ndarray, wall_cells: int) -> np.ndarray:
-    """Walls `wall_cells` thick on every label change, and everything outside (label 0).
+def _walls_from_labels(labels: np.ndarray, wall_cells: int, wall_outside: bool) -> np.ndarray:
+    """Walls `wall_cells` thick on every label change, and (if `wall_outside`) everything
+    outside the building (label 0).
 
     A change between rows y-1 and y walls rows [y - wall_cells // 2, y - wall_cells // 2
     + wall_cells); columns likewise (the same rows a door through it opens).
@@ -622,7 +633,7 @@ def _walls_from_labels(labels: np.ndarray, wall_cells: int) -> np.ndarray:
     changed_rows[1:] = labels[1:] != labels[:-1]
     changed_cols = np.zeros(labels.shape, dtype=bool)
     changed_cols[:, 1:] = labels[:, 1:] != labels[:, :-1]
-    walls = labels == 0
+    walls = (labels == 0) if wall_outside else np.zeros(labels.shape, dtype=bool)
     for k in range(wall_cells):
         step = k - wall_cells // 2
         walls |= _shifted(changed_rows, step, axis=0) | _shifted(changed_cols, step, axis=1)
@@ -763,13 +774,16 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description="Render one procedural floor plan.")
     parser.add_argument("--seed", type=int, default=0, help="plan seed (default: 0)")
     parser.add_argument("--out", type=Path, default=Path("plan.png"), help="PNG to write")
+    parser.add_argument(
+        "--free-outside", action="store_true", help="free space around the building, as in KTH"
+    )
     args = parser.parse_args(argv)
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    world = generate_floor_plan(args.seed)
+    world = generate_floor_plan(args.seed, plan_config(args.free_outside))
     image = np.ones((*world.shape, 3))
     image[world.valid_space] = (0.8, 0.9, 1.0)
     image[world.occupancy] = 0.0
