@@ -22,14 +22,7 @@ from mapex.methods import make_method
 from mapex.metrics import building_footprint
 from mapex.prediction.network import OUTSIDE_MAP
 from mapex.simulator import Simulator
-from mapex.worlds import (
-    GENERATED_PREFIX,
-    OPEN_GENERATED_PREFIX,
-    World,
-    is_procedural,
-    load_world,
-    start_poses,
-)
+from mapex.worlds import World, generated_prefix, is_procedural, load_world, start_poses
 
 # Maps that share buildings with the held-back test maps (SPEC §1): never train on them.
 VALIDATION_ONLY_MAPS = ("50037764_PLAN1", "50052748")
@@ -55,7 +48,7 @@ def training_world_specs(config: PredictorTrainingConfig, kth_dirs: list[str]) -
         if any(directory.rstrip("/").endswith(name) for name in VALIDATION_ONLY_MAPS):
             raise ValueError(f"{directory} is a validation-only map (SPEC §1): never train on it")
     first = config.first_procedural_seed
-    prefix = OPEN_GENERATED_PREFIX if config.free_outside_plans else GENERATED_PREFIX
+    prefix = generated_prefix(config.free_outside_plans)
     return [f"{prefix}{seed}" for seed in range(first, first + config.procedural_worlds)] + list(
         kth_dirs
     )

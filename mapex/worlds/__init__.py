@@ -9,7 +9,13 @@ from __future__ import annotations
 
 from typing import Any
 
-from mapex.worlds.base import GENERATED_PREFIX, OPEN_GENERATED_PREFIX, World, WorldError
+from mapex.worlds.base import (
+    GENERATED_PREFIX,
+    OPEN_GENERATED_PREFIX,
+    World,
+    WorldError,
+    generated_prefix,
+)
 from mapex.worlds.kth import load_kth_map
 from mapex.worlds.starts import start_poses
 
@@ -21,6 +27,7 @@ __all__ = [
     "World",
     "WorldError",
     "generate_floor_plan",
+    "generated_prefix",
     "is_procedural",
     "load_kth_map",
     "load_world",
@@ -47,7 +54,8 @@ def load_world(spec: str) -> World:
         )
     if spec == DEFAULT_SPEC:
         spec = DEFAULT_WORLD
-    for prefix, free_outside in ((GENERATED_PREFIX, False), (OPEN_GENERATED_PREFIX, True)):
+    for free_outside in (False, True):
+        prefix = generated_prefix(free_outside)
         if spec.startswith(prefix):
             from mapex.worlds.procedural import generate_floor_plan, plan_config
 

@@ -12,6 +12,11 @@ GENERATED_PREFIX = "generated:"  # world names of procedural floor plans
 OPEN_GENERATED_PREFIX = "generated-open:"  # the same plans with free space outside
 
 
+def generated_prefix(free_outside: bool) -> str:
+    """The world-name prefix of procedural plans with free space outside or solid wall."""
+    return OPEN_GENERATED_PREFIX if free_outside else GENERATED_PREFIX
+
+
 class WorldError(ValueError):
     """A world that cannot be loaded or generated; the message is one line naming the cause."""
 

@@ -27,7 +27,7 @@ import numpy as np
 from scipy import ndimage
 
 from mapex.config import ProceduralConfig
-from mapex.worlds.base import GENERATED_PREFIX, OPEN_GENERATED_PREFIX, World, WorldError
+from mapex.worlds.base import World, WorldError, generated_prefix
 
 CORRIDOR_LABEL = 1  # corridors and open areas share one label: no walls between them
 FIRST_ROOM_LABEL = 2
@@ -134,8 +134,8 @@ def generate_layout(seed: int, config: ProceduralConfig = DEFAULT_CONFIG) -> Flo
 
     flips = (transposed, bool(rng.random() < 0.5), bool(rng.random() < 0.5))
     occupancy, labels, doors = (_orient(a, *flips) for a in (occupancy, labels, doors))
-    prefix = OPEN_GENERATED_PREFIX if config.free_outside else GENERATED_PREFIX
-    world = World(f"{prefix}{seed}", occupancy, (labels > 0) & ~occupancy)
+    name = f"{generated_prefix(config.free_outside)}{seed}"
+    world = World(name, occupancy, (labels > 0) & ~occupancy)
     return FloorLayout(world, labels, doors & ~occupancy)
 
 
