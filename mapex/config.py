@@ -124,6 +124,12 @@ class PredictorTrainingConfig:
     weight_decay: float = 1e-4
     wall_weight: float = 2.0  # BCE weight of wall cells (walls are the rarer class)
     member_wall_weight: float = 1.0  # the same for G_1..G_3's fine-tuning (plain cross-entropy)
+    # After G_1..G_3 have started from it, G is polished: fine-tuned further with this
+    # many steps of its loss plus `polish_soft_iou_weight` times a soft IoU of the walls
+    # per crop (the metric the evaluation scores), at `polish_learning_rate`. 0: no polish.
+    main_polish_steps: int = 1500
+    polish_soft_iou_weight: float = 3.0
+    polish_learning_rate: float = 1e-3
     calibrate_main: bool = True  # after training G, choose its decision threshold (IoU)
     calibration_snapshots: int = 200  # training snapshots G's threshold is chosen on
     calibration_thresholds: tuple[float, ...] = tuple(round(0.2 + 0.025 * i, 3) for i in range(17))

@@ -105,6 +105,7 @@ def test_the_stored_bias_shifts_only_that_members_logits(tmp_path):
 
 def test_calibrate_only_stores_a_threshold_from_the_grid(snapshots, tmp_path, capsys):
     train.train_member(0, snapshots, TINY, torch.device("cpu"), tmp_path, False)
+    train.polish_main(snapshots, TINY, torch.device("cpu"), tmp_path, False)
     argv = ["--calibrate-only", "--out", str(tmp_path), "--no-kth", *tiny_overrides()]
     assert train.main(argv) == 0
     calibration = read_metadata(tmp_path / "g.pt")["calibration"]

@@ -78,6 +78,14 @@ def test_interrupted_training_resumes_to_the_same_weights(
         TINY, data_workers=data_workers, main_steps=5, checkpoint_every_steps=3
     )  # resumes at step 3: with 2 workers, worker 0 then serves the odd batches
     straight = _train(snapshots, config, tmp_path / "a")
+    resumed = _interrupted_and_resumed(
+        lambda resume: _train(snapshots, config, tmp_path / "b", resume), monkeypatch
+    )
+    _assert_same_weights(straight, resumed)
+
+
+def _interrupted_and_resumed(run, monkeypatch):
+    """`run(resume=False)` stopped by a Ctrl-C in its 5th step, then `run(resume=True)`."""
     real_loss, calls = train.masked_loss, []
 
     def dying_loss(*args):
@@ -88,9 +96,9 @@ def test_interrupted_training_resumes_to_the_same_weights(
 
     monkeypatch.setattr(train, "masked_loss", dying_loss)
     with pytest.raises(KeyboardInterrupt):
-        _train(snapshots, config, tmp_path / "b")
+        run(False)
     monkeypatch.setattr(train, "masked_loss", real_loss)
-    _assert_same_weights(straight, _train(snapshots, config, tmp_path / "b", resume=True))
+    return run(True)
 
 
 def test_loader_workers_draw_a_seeded_order(snapshots, tmp_path):
@@ -157,15 +165,91 @@ def test_by_source_without_three_sources_is_refused_before_any_work(tmp_path, ca
     ]
 
 
-def test_members_use_their_own_wall_weight(snapshots, tmp_path, monkeypatch):
+def test_members_use_their_own_loss_and_only_the_polish_adds_soft_iou(
+    snapshots, tmp_path, monkeypatch
+):
     weights = []
     real_loss = train.masked_loss
-    monkeypatch.setattr(train, "masked_loss", lambda *a: weights.append(a[3]) or real_loss(*a))
-    config = dataclasses.replace(TINY, wall_weight=2.0, member_wall_weight=1.0)
+    monkeypatch.setattr(train, "masked_loss", lambda *a: weights.append(a[3:]) or real_loss(*a))
+    config = dataclasses.replace(
+        TINY, wall_weight=2.0, member_wall_weight=1.0, polish_soft_iou_weight=3.0
+    )
     for member in (0, 1):
         train.train_member(member, snapshots, config, torch.device("cpu"), tmp_path, False)
-    assert set(weights[: TINY.main_steps]) == {2.0}
-    assert set(weights[TINY.main_steps :]) == {1.0}
+    train.polish_main(snapshots, config, torch.device("cpu"), tmp_path, False)
+    main, member, polish = np.split(
+        np.array(weights), np.cumsum([TINY.main_steps, TINY.member_steps])
+    )
+    assert {tuple(w) for w in main} == {(2.0, 0.0)}  # wall weight, soft IoU weight
+    assert {tuple(w) for w in member} == {(1.0, 0.0)}
+    assert {tuple(w) for w in polish} == {(2.0, 3.0)} and len(polish) == TINY.main_polish_steps
+
+
+def test_polishing_changes_g_but_not_the_base_its_members_start_from(snapshots, tmp_path):
+    base_path = _train(snapshots, TINY, tmp_path)
+    assert base_path == train.base_weights(tmp_path)
+    base = load_member(base_path).state_dict()
+    polished_path = train.polish_main(snapshots, TINY, torch.device("cpu"), tmp_path, False)
+    polished = load_member(polished_path).state_dict()
+    assert polished_path.name == "g.pt" and not torch.equal(
+        polished["stem.1.weight"], base["stem.1.weight"]
+    )
+    _assert_same_weights(base_path, train.base_weights(tmp_path))  # left as it was
+    member = train._initial_model(1, TINY, tmp_path).state_dict()
+    torch.testing.assert_close(member["stem.1.weight"], base["stem.1.weight"], rtol=0, atol=0)
+    metadata = read_metadata(polished_path)
+    assert metadata["steps"] == TINY.main_steps
+    assert metadata["polish_steps"] == TINY.main_polish_steps
+
+
+def test_without_polish_g_is_its_base(snapshots, tmp_path):
+    config = dataclasses.replace(TINY, main_polish_steps=0)
+    base_path = _train(snapshots, config, tmp_path)
+    _assert_same_weights(
+        base_path, train.polish_main(snapshots, config, torch.device("cpu"), tmp_path, False)
+    )
+
+
+def test_an_interrupted_polish_resumes_to_the_same_weights(snapshots, tmp_path, monkeypatch):
+    config = dataclasses.replace(TINY, main_polish_steps=5, checkpoint_every_steps=3)
+    cpu = torch.device("cpu")
+    for out in (tmp_path / "a", tmp_path / "b"):
+        _train(snapshots, config, out)
+    straight = train.polish_main(snapshots, config, cpu, tmp_path / "a", False)
+    resumed = _interrupted_and_resumed(
+        lambda resume: train.polish_main(snapshots, config, cpu, tmp_path / "b", resume),
+        monkeypatch,
+    )
+    _assert_same_weights(straight, resumed)
+
+
+def _wall_crops() -> tuple[torch.Tensor, torch.Tensor]:
+    """Two 1x4x4 crops: walls in the left column, loss over all cells but the right column."""
+    walls = torch.zeros(2, 1, 4, 4)
+    walls[..., 0] = 1.0
+    mask = torch.ones(2, 1, 4, 4)
+    mask[..., 3] = 0.0
+    return walls, mask
+
+
+def test_soft_iou_loss_is_near_zero_when_right_and_near_one_when_wrong():
+    walls, mask = _wall_crops()
+    sure = 20.0 * (2.0 * walls - 1.0)  # logits: confident walls where the walls are
+    assert train.soft_iou_loss(sure, walls, mask).item() < 1e-3
+    assert train.soft_iou_loss(-sure, walls, mask).item() > 0.9
+
+
+def test_soft_iou_loss_ignores_cells_outside_the_mask():
+    walls, mask = _wall_crops()
+    logits = torch.randn(2, 1, 4, 4, generator=torch.Generator().manual_seed(0))
+    changed = logits.clone()
+    changed[..., 3] = 50.0  # confident walls, but outside the mask
+    assert train.soft_iou_loss(changed, walls, mask) == train.soft_iou_loss(logits, walls, mask)
+
+
+def test_soft_iou_loss_of_a_crop_without_walls_is_zero():
+    empty = torch.zeros(1, 1, 4, 4)
+    assert train.soft_iou_loss(torch.full_like(empty, -20.0), empty, torch.ones_like(empty)) < 1e-6
 
 
 def test_free_outside_plans_are_explored_as_generated_open_worlds():
@@ -203,7 +287,7 @@ def test_members_without_g_are_refused_before_any_work(tmp_path, capsys):
     error = capsys.readouterr().err.strip().splitlines()
     assert status == 2 and error == [
         "mapex.prediction.train: error: g2, g3 would start from G's weights, "
-        f"but there is no {tmp_path / 'g.pt'}: train g too (--members g,g1,g2,g3) "
+        f"but there is no {tmp_path / 'g-base.pt'}: train g too (--members g,g1,g2,g3) "
         "or --set members_from_main=false"
     ]  # one line, and no snapshots were collected
 

@@ -19,6 +19,7 @@ TINY = PredictorTrainingConfig(
     batch_size=2,
     main_steps=4,
     member_steps=2,
+    main_polish_steps=2,
     checkpoint_every_steps=2,
     precision="float32",  # fast on every CPU
     network=SMALL,

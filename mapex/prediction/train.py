@@ -2,10 +2,12 @@
 
 G is trained on every snapshot; G_1..G_3 each fine-tune it on one source of the data
 (one KTH training map each, then the procedural plans), or on a disjoint third of the
-worlds with `--set member_split=thirds` (SPEC §4). Snapshots come from exploring
-procedural floor plans and the two KTH maps allowed for training. Checkpoints are
-written as training goes, so an interrupted run resumes with `--resume`. Once G is
-trained, its decision threshold is chosen on training snapshots
+worlds with `--set member_split=thirds` (SPEC §4). G's weights from before that are
+kept (g-base.pt); after the members, G is polished with a soft IoU added to its loss
+(`polish_main`). Snapshots come from exploring procedural floor plans and the two KTH
+maps allowed for training. Checkpoints are written as training goes, so an interrupted
+run resumes with `--resume`. Once G is polished, its decision threshold is chosen on
+training snapshots
 (`mapex.prediction.calibration`); `--calibrate-only` does that alone for the G already
 in `--out`. The final weights (float16) go to `mapex/prediction/weights/` by default,
 where the package loads them from.
@@ -18,6 +20,7 @@ import dataclasses
 import platform
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +43,7 @@ from mapex.prediction.weights import (
     WEIGHTS_DIR,
     WeightsError,
     load_member,
+    read_metadata,
     save_weights,
 )
 from mapex.worlds import World, WorldError, is_procedural
@@ -68,11 +72,44 @@ def world_sources(worlds: list[World]) -> list[list[int]]:
     return kth + ([procedural] if procedural else [])
 
 
-def masked_loss(logits: torch.Tensor, walls: torch.Tensor, mask: torch.Tensor, wall_weight: float):
-    """Binary cross-entropy over the masked cells, walls weighted by `wall_weight`."""
+def masked_loss(
+    logits: torch.Tensor,
+    walls: torch.Tensor,
+    mask: torch.Tensor,
+    wall_weight: float,
+    soft_iou_weight: float = 0.0,
+) -> torch.Tensor:
+    """Binary cross-entropy over the masked cells, walls weighted by `wall_weight`, plus
+    `soft_iou_weight` times `soft_iou_loss`."""
     weights = mask * (1.0 + (wall_weight - 1.0) * walls)
     losses = F.binary_cross_entropy_with_logits(logits, walls, reduction="none")
-    return (losses * weights).sum() / weights.sum().clamp_min(1.0)
+    loss = (losses * weights).sum() / weights.sum().clamp_min(1.0)
+    if soft_iou_weight:
+        loss = loss + soft_iou_weight * soft_iou_loss(logits, walls, mask)
+    return loss
+
+
+def soft_iou_loss(logits: torch.Tensor, walls: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """1 - soft IoU of the wall class over the masked cells, per crop, averaged over the
+    batch: the evaluation's metric with probabilities for the thresholded walls. A crop
+    with no wall, predicted or true, scores 0 (smoothed by one cell)."""
+    predicted, true = torch.sigmoid(logits) * mask, walls * mask
+    intersection = (predicted * true).sum((1, 2, 3))
+    union = (predicted + true - predicted * true).sum((1, 2, 3))
+    return (1.0 - (intersection + 1.0) / (union + 1.0)).mean()
+
+
+@dataclass(frozen=True)
+class _Schedule:
+    """One optimisation run: how long, how fast, with what loss, from which batch stream."""
+
+    label: str  # the progress bar's
+    steps: int
+    learning_rate: float
+    wall_weight: float
+    soft_iou_weight: float
+    seed: int  # of the weights' random draws and of the batch stream
+    checkpoint: Path
 
 
 def train_member(
@@ -83,31 +120,93 @@ def train_member(
     out_dir: Path,
     resume: bool,
 ) -> Path:
-    """Train one member with checkpoints; write its float16 weights; return their path."""
+    """Train one member with checkpoints; write its float16 weights; return their path.
+    G's are its base weights (`base_weights`), which `polish_main` turns into g.pt."""
     name = MEMBER_NAMES[member]
-    steps = config.main_steps if member == 0 else config.member_steps
-    wall_weight = config.wall_weight if member == 0 else config.member_wall_weight
     data = member_snapshots(snapshots, member, config.member_split)
-    torch.manual_seed(config.seed + member)
+    schedule = _Schedule(
+        label=f"train {name}",
+        steps=config.main_steps if member == 0 else config.member_steps,
+        learning_rate=config.learning_rate,
+        wall_weight=config.wall_weight if member == 0 else config.member_wall_weight,
+        soft_iou_weight=0.0,
+        seed=config.seed + member,
+        checkpoint=out_dir / "checkpoints" / f"{name}.ckpt",
+    )
+    torch.manual_seed(schedule.seed)
     model = _initial_model(member, config, out_dir).to(device)
+    wall_time_s = _fit(model, data, schedule, config, device, resume)
+    metadata = _metadata(name, data, config, device) | {
+        "steps": schedule.steps,
+        "training_wall_time_s": wall_time_s,
+    }
+    target = base_weights(out_dir) if member == 0 else out_dir / f"{name}.pt"
+    return save_weights(target, model, metadata)
+
+
+def polish_main(
+    snapshots: SnapshotSet,
+    config: PredictorTrainingConfig,
+    device: torch.device,
+    out_dir: Path,
+    resume: bool,
+) -> Path:
+    """Fine-tune G's base weights with soft IoU added to its loss; write g.pt.
+
+    Cross-entropy fixes G's walls only up to their operating point; the evaluation
+    scores the IoU of the thresholded walls, which the soft IoU term optimises directly.
+    Its members start from the base weights, so polishing G changes P_t only."""
+    base = base_weights(out_dir)
+    schedule = _Schedule(
+        label="polish g",
+        steps=config.main_polish_steps,
+        learning_rate=config.polish_learning_rate,
+        wall_weight=config.wall_weight,
+        soft_iou_weight=config.polish_soft_iou_weight,
+        seed=config.seed + len(MEMBER_NAMES),
+        checkpoint=out_dir / "checkpoints" / "g-polish.ckpt",
+    )
+    torch.manual_seed(schedule.seed)
+    model = load_member(base).train().to(device)
+    wall_time_s = _fit(model, snapshots, schedule, config, device, resume)
+    metadata = read_metadata(base) | {
+        "polish_steps": schedule.steps,
+        "polish_soft_iou_weight": schedule.soft_iou_weight,
+        "polish_wall_time_s": wall_time_s,
+    }
+    metadata.pop("calibration", None)
+    return save_weights(_main_weights(out_dir), model, metadata)
+
+
+def _fit(
+    model: LamaGenerator,
+    data: SnapshotSet,
+    schedule: _Schedule,
+    config: PredictorTrainingConfig,
+    device: torch.device,
+    resume: bool,
+) -> float:
+    """Optimise `model` in place (resuming from its checkpoint if asked); return the
+    training wall time (s), including that before a resume."""
+    if schedule.steps == 0:
+        return 0.0
     optimizer = torch.optim.AdamW(
-        model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
+        model.parameters(), lr=schedule.learning_rate, weight_decay=config.weight_decay
     )
-    schedule = torch.optim.lr_scheduler.OneCycleLR(
-        optimizer, max_lr=config.learning_rate, total_steps=steps, pct_start=0.1
+    rates = torch.optim.lr_scheduler.OneCycleLR(
+        optimizer, max_lr=schedule.learning_rate, total_steps=schedule.steps, pct_start=0.1
     )
-    checkpoint = out_dir / "checkpoints" / f"{name}.ckpt"
     start, elapsed = 0, 0.0
-    if resume and checkpoint.exists():
-        state = torch.load(checkpoint, map_location=device, weights_only=False)
+    if resume and schedule.checkpoint.exists():
+        state = torch.load(schedule.checkpoint, map_location=device, weights_only=False)
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
-        schedule.load_state_dict(state["schedule"])
+        rates.load_state_dict(state["schedule"])
         torch.set_rng_state(state["torch_rng"])
         start, elapsed = state["step"], state["elapsed_s"]
     batches = batch_loader(
         CropSampler(data, config),
-        config.seed + member,
+        schedule.seed,
         config.batch_size,
         first_batch=start,
         workers=config.data_workers,
@@ -115,30 +214,35 @@ def train_member(
     )
     model.train()
     began = time.perf_counter() - elapsed
-    bar = tqdm(range(start, steps), initial=start, total=steps, desc=f"train {name}", unit="step")
+    steps = schedule.steps
+    bar = tqdm(range(start, steps), initial=start, total=steps, desc=schedule.label, unit="step")
     for step, batch in zip(bar, batches, strict=False):  # the batch stream is endless
         inputs, walls, masks = (a.to(device, non_blocking=True) for a in batch)
         with autocast(device, config.precision):
             logits = model(inputs).float()
-        loss = masked_loss(logits, walls, masks, wall_weight)
+        loss = masked_loss(logits, walls, masks, schedule.wall_weight, schedule.soft_iou_weight)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
-        schedule.step()
+        rates.step()
         bar.set_postfix(loss=f"{loss.item():.4f}")
         done = step + 1
         if done % config.checkpoint_every_steps == 0 or done == steps:
-            _save_checkpoint(checkpoint, model, optimizer, schedule, done, began)
-    metadata = {
+            _save_checkpoint(schedule.checkpoint, model, optimizer, rates, done, began)
+    return round(time.perf_counter() - began, 1)
+
+
+def _metadata(
+    name: str, data: SnapshotSet, config: PredictorTrainingConfig, device: torch.device
+) -> dict:
+    """What a weights file records about its training (besides steps and wall time)."""
+    return {
         "member": name,
-        "steps": steps,
         "snapshots": len(data.observed),
         "worlds": sorted({data.worlds[i].name for i in np.unique(data.world_of)}),
         "training_config": dataclasses.asdict(config),
         "device": _device_name(device),
-        "training_wall_time_s": round(time.perf_counter() - began, 1),
     }
-    return save_weights(out_dir / f"{name}.pt", model, metadata)
 
 
 def _initial_model(member: int, config: PredictorTrainingConfig, out_dir: Path) -> LamaGenerator:
@@ -149,7 +253,7 @@ def _initial_model(member: int, config: PredictorTrainingConfig, out_dir: Path) 
     than wherever an undertrained network guesses differently."""
     if member == 0 or not config.members_from_main:
         return LamaGenerator(config.network)
-    path = _main_weights(out_dir)
+    path = base_weights(out_dir)
     main = load_member(path)
     if main.config != config.network:
         raise ValueError(
@@ -160,8 +264,14 @@ def _initial_model(member: int, config: PredictorTrainingConfig, out_dir: Path) 
 
 
 def _main_weights(out_dir: Path) -> Path:
-    """Where G's weights are written in `out_dir` (and where its members start from)."""
+    """Where G's final (polished) weights are written in `out_dir`."""
     return out_dir / f"{MEMBER_NAMES[0]}.pt"
+
+
+def base_weights(out_dir: Path) -> Path:
+    """Where G's weights before polishing are written in `out_dir`: its members start
+    from them."""
+    return out_dir / f"{MEMBER_NAMES[0]}-base.pt"
 
 
 def _save_checkpoint(path, model, optimizer, schedule, step: int, began: float) -> None:
@@ -242,6 +352,9 @@ def main(argv: list[str] | None = None) -> int:
         for member in members:
             path = train_member(member, snapshots, config, device, args.out, args.resume)
             print(f"wrote {path}")
+        if 0 in members:
+            path = polish_main(snapshots, config, device, args.out, args.resume)
+            print(f"wrote {path}")
         if args.calibrate_only or (0 in members and config.calibrate_main):
             calibration = calibrate_weights(_main_weights(args.out), snapshots, config)
             print(describe(calibration))
@@ -253,7 +366,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _check_main_for_members(members: list[int], config: PredictorTrainingConfig, out: Path) -> None:
     """Refuse, before any work, members that would start from a G this run has not got."""
-    main = _main_weights(out)
+    main = base_weights(out)
     if config.members_from_main and 0 not in members and not main.exists():
         raise ValueError(
             f"{', '.join(MEMBER_NAMES[k] for k in members)} would start from G's weights, "
