@@ -174,7 +174,6 @@ def polish_main(
         "polish_soft_iou_weight": schedule.soft_iou_weight,
         "polish_wall_time_s": wall_time_s,
     }
-    metadata.pop("calibration", None)
     return save_weights(_main_weights(out_dir), model, metadata)
 
 
