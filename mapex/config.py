@@ -222,8 +222,11 @@ class ProceduralConfig:
     door_width_min: int = 8  # 0.8 m
     door_width_max: int = 12  # 1.2 m
     door_offset_max: int = 6  # door distance from the room corner (shared along a row)
-    wall_thickness_min: int = 2  # interior walls, like KTH after downsampling
+    wall_thickness_min: int = 2  # interior walls, one thickness per plan
     wall_thickness_max: int = 3
+    # The outline's walls (between the building and the outside); None: as thick as the
+    # interior walls of the same plan.
+    outer_wall_thickness: int | None = None
     outline_rectangle_weight: float = 0.3  # relative odds of the building outlines
     outline_l_weight: float = 0.2
     outline_t_weight: float = 0.15
@@ -233,6 +236,15 @@ class ProceduralConfig:
     # Free space around the building and in its cut-away parts (as in the KTH maps),
     # instead of solid wall; its worlds are named "generated-open:<seed>".
     free_outside: bool = False
+
+
+# The plans with free space outside (generated-open:SEED), which the predictor trains on,
+# take their walls from the KTH training maps 50015847 and 50015848: between two rooms
+# mostly 4 cells thick (3 in about a sixth of them), around the building 2 cells thick
+# (93 % of their outline).
+OPEN_PLAN_CONFIG = ProceduralConfig(
+    wall_thickness_min=3, wall_thickness_max=4, outer_wall_thickness=2, free_outside=True
+)
 
 
 InpaintMethod = Literal["ns", "telea"]

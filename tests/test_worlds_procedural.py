@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from mapex.config import ProceduralConfig
+from mapex.config import OPEN_PLAN_CONFIG, ProceduralConfig
 from mapex.worlds import WorldError, generate_floor_plan, load_world
 from mapex.worlds.procedural import (
     CORRIDOR_LABEL,
@@ -136,9 +136,8 @@ def test_a_free_outside_plan_is_the_same_building_with_free_space_around_it(seed
     walled, open_plan = layout(seed), open_layout(seed)
     world = open_plan.world
     assert world.name == f"generated-open:{seed}" == load_world(f"generated-open:{seed}").name
-    np.testing.assert_array_equal(open_plan.labels, walled.labels)
+    np.testing.assert_array_equal(open_plan.labels, walled.labels)  # the same rooms
     inside = walled.labels > 0
-    np.testing.assert_array_equal(world.occupancy[inside], walled.world.occupancy[inside])
     outside_free = ~world.occupancy & ~inside
     assert outside_free.sum() > 0.5 * (~inside).sum()  # mostly free; the outer walls remain
     np.testing.assert_array_equal(world.valid_space, inside & ~world.occupancy)
@@ -151,3 +150,40 @@ def test_a_free_outside_plan_is_still_sealed(seed: int) -> None:
     building = np.unique(components[world.valid_space])
     assert len(building) == 1  # one connected building, which no free cell outside reaches
     assert not np.isin(components[~world.occupancy & ~world.valid_space], building).any()
+
+
+def wall_runs(plan: FloorLayout) -> tuple[np.ndarray, np.ndarray]:
+    """Lengths of the runs of wall cells along rows and columns that have free cells at
+    both ends: between two rooms (interior), and between a room and the outside (outline)."""
+    walls, labels = plan.world.occupancy, plan.labels
+    interior, outline = [], []
+    for wall_lines, label_lines in ((walls, labels), (walls.T, labels.T)):
+        for line, line_labels in zip(wall_lines, label_lines, strict=True):
+            change = np.diff(line.astype(np.int8))
+            starts, stops = np.flatnonzero(change == 1) + 1, np.flatnonzero(change == -1) + 1
+            for start in starts:  # wall from `start` with a free cell before it
+                later = stops[stops > start]
+                if not len(later):
+                    continue  # runs into the map's border
+                stop = later[0]  # the first free cell after it
+                ends = line_labels[start - 1], line_labels[stop]
+                (outline if 0 in ends else interior).append(stop - start)
+    return np.array(interior), np.array(outline)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_a_free_outside_plan_has_the_walls_of_the_kth_training_maps(seed: int) -> None:
+    interior, outline = wall_runs(open_layout(seed))
+    thickness = np.bincount(interior).argmax()  # one thickness per plan
+    low, high = OPEN_PLAN_CONFIG.wall_thickness_min, OPEN_PLAN_CONFIG.wall_thickness_max
+    assert low <= thickness <= high
+    assert np.mean(interior == thickness) > 0.9  # the rest run along a wall's end
+    assert np.mean(outline == OPEN_PLAN_CONFIG.outer_wall_thickness) > 0.9
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_a_sealed_plan_has_one_wall_thickness(seed: int) -> None:
+    interior, _ = wall_runs(layout(seed))
+    thickness = np.bincount(interior).argmax()
+    assert CONFIG.wall_thickness_min <= thickness <= CONFIG.wall_thickness_max
+    assert np.mean(interior == thickness) > 0.9

@@ -10,8 +10,10 @@ halls, inner rooms and closed corridor ends. Every space is an axis-aligned rect
 painted with its own label; walls go wherever labels change, and doors open along a
 spanning tree grown from the corridors, aligned along each block. Outside the building
 is wall (a sealed building), or, with `free_outside`, free space beyond the outer walls as
-in the KTH maps (the building is still sealed). Finally the plan is transposed and
-flipped at random.
+in the KTH maps (the building is still sealed). The walls of a plan are one thickness,
+or, with `outer_wall_thickness`, its outline has its own: the plans with free space
+outside (`OPEN_PLAN_CONFIG`) copy the KTH training maps, 4 or 3 cells between rooms and 2
+around the building. Finally the plan is transposed and flipped at random.
 
 Run `python -m mapex.worlds.procedural --seed 3 --out plan.png` to look at one.
 """
@@ -26,7 +28,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import ndimage
 
-from mapex.config import ProceduralConfig
+from mapex.config import OPEN_PLAN_CONFIG, ProceduralConfig
 from mapex.worlds.base import World, WorldError, generated_prefix
 
 CORRIDOR_LABEL = 1  # corridors and open areas share one label: no walls between them
@@ -101,8 +103,9 @@ def generate_floor_plan(seed: int, config: ProceduralConfig = DEFAULT_CONFIG) ->
 
 
 def plan_config(free_outside: bool) -> ProceduralConfig:
-    """The default plan configuration, with free space outside the building or not."""
-    return replace(DEFAULT_CONFIG, free_outside=free_outside)
+    """The default (sealed) plan configuration, or that of the plans with free space outside
+    the building and KTH-like walls (`OPEN_PLAN_CONFIG`)."""
+    return OPEN_PLAN_CONFIG if free_outside else DEFAULT_CONFIG
 
 
 def generate_layout(seed: int, config: ProceduralConfig = DEFAULT_CONFIG) -> FloorLayout:
@@ -128,7 +131,8 @@ def generate_layout(seed: int, config: ProceduralConfig = DEFAULT_CONFIG) -> Flo
     _open_lobby(rng, spaces, edges, config)
     labels = _paint_labels(spaces, cutouts, (stack_len + 2 * margin, long_len + 2 * margin))
     outside = labels == 0
-    walls = _walls_from_labels(labels, wall_cells, wall_outside=not config.free_outside)
+    outer_cells = config.outer_wall_thickness or wall_cells
+    walls = _walls_from_labels(labels, wall_cells, outer_cells, not config.free_outside)
     doors = _door_mask(rng, spaces, edges, wall_cells, labels.shape, config) & ~outside
     occupancy = np.where(outside, walls, _seal_unreachable(walls & ~doors | outside))
 
@@ -622,21 +626,29 @@ def _paint_labels(spaces: list[_Space], cutouts: list[Rect], shape: tuple[int, i
     return labels
 
 
-def _walls_from_labels(labels: np.ndarray, wall_cells: int, wall_outside: bool) -> np.ndarray:
-    """Walls `wall_cells` thick on every label change, and (if `wall_outside`) everything
-    outside the building (label 0).
+def _walls_from_labels(
+    labels: np.ndarray, wall_cells: int, outer_wall_cells: int, wall_outside: bool
+) -> np.ndarray:
+    """Walls `wall_cells` thick on every change between two spaces, `outer_wall_cells`
+    thick on the building's outline (a change to label 0), and (if `wall_outside`)
+    everything outside the building.
 
-    A change between rows y-1 and y walls rows [y - wall_cells // 2, y - wall_cells // 2
-    + wall_cells); columns likewise (the same rows a door through it opens).
+    A change between rows y-1 and y of thickness n walls rows [y - n // 2, y - n // 2
+    + n); columns likewise (the same rows a door through it opens).
     """
-    changed_rows = np.zeros(labels.shape, dtype=bool)
-    changed_rows[1:] = labels[1:] != labels[:-1]
-    changed_cols = np.zeros(labels.shape, dtype=bool)
-    changed_cols[:, 1:] = labels[:, 1:] != labels[:, :-1]
     walls = (labels == 0) if wall_outside else np.zeros(labels.shape, dtype=bool)
-    for k in range(wall_cells):
-        step = k - wall_cells // 2
-        walls |= _shifted(changed_rows, step, axis=0) | _shifted(changed_cols, step, axis=1)
+    for axis in (0, 1):
+        before = labels.take(range(labels.shape[axis] - 1), axis=axis)
+        after = labels.take(range(1, labels.shape[axis]), axis=axis)
+        changed = np.zeros(labels.shape, dtype=bool)
+        outline = np.zeros(labels.shape, dtype=bool)
+        target = [slice(None)] * 2
+        target[axis] = slice(1, None)
+        changed[tuple(target)] = before != after
+        outline[tuple(target)] = (before != after) & ((before == 0) | (after == 0))
+        for mask, cells in ((changed & ~outline, wall_cells), (outline, outer_wall_cells)):
+            for k in range(cells):
+                walls |= _shifted(mask, k - cells // 2, axis=axis)
     _close_diagonal_gaps(walls, labels)
     return walls
 
