@@ -240,7 +240,7 @@ class ProceduralConfig:
 
 # The plans with free space outside (generated-open:SEED), which the predictor trains on,
 # take their walls from the KTH training maps 50015847 and 50015848: between two rooms
-# mostly 4 cells thick (3 in about a sixth of them), around the building 2 cells thick
+# mostly 4 cells thick (3 in about a fifth of them), around the building 2 cells thick
 # (93 % of their outline).
 OPEN_PLAN_CONFIG = ProceduralConfig(
     wall_thickness_min=3, wall_thickness_max=4, outer_wall_thickness=2, free_outside=True
