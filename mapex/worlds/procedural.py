@@ -638,15 +638,13 @@ def _walls_from_labels(
     """
     walls = (labels == 0) if wall_outside else np.zeros(labels.shape, dtype=bool)
     for axis in (0, 1):
-        before = labels.take(range(labels.shape[axis] - 1), axis=axis)
-        after = labels.take(range(1, labels.shape[axis]), axis=axis)
-        changed = np.zeros(labels.shape, dtype=bool)
-        outline = np.zeros(labels.shape, dtype=bool)
-        target = [slice(None)] * 2
-        target[axis] = slice(1, None)
-        changed[tuple(target)] = before != after
-        outline[tuple(target)] = (before != after) & ((before == 0) | (after == 0))
-        for mask, cells in ((changed & ~outline, wall_cells), (outline, outer_wall_cells)):
+        n = labels.shape[axis]
+        before, after = labels.take(range(n - 1), axis=axis), labels.take(range(1, n), axis=axis)
+        differs = before != after
+        on_outline = differs & ((before == 0) | (after == 0))
+        for change, cells in ((differs & ~on_outline, wall_cells), (on_outline, outer_wall_cells)):
+            mask = np.zeros(labels.shape, dtype=bool)  # the change sits at the later cell
+            mask[(slice(None),) * axis + (slice(1, None),)] = change
             for k in range(cells):
                 walls |= _shifted(mask, k - cells // 2, axis=axis)
     _close_diagonal_gaps(walls, labels)
