@@ -90,6 +90,9 @@ class NetworkConfig:
     global_ratio: float = 0.75  # share of channels in the spectral (global) branch
     refine_channels: int = 16  # full-resolution refinement of the upsampled logits
     context_cells: int = 32  # map around a predicted region that the network also sees
+    # inference: average the logits over the map and the map turned by 180 degrees (two
+    # forward passes); the network is not equivariant, and the two views' errors differ
+    average_turned_view: bool = True
 
 
 MemberSplit = Literal["thirds", "by_source"]

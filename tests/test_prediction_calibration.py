@@ -34,7 +34,9 @@ def snapshots():
 
 
 class KnowsTheWalls(nn.Module):
-    """A stand-in network: wall probability `on_wall` on true walls, `off_wall` elsewhere."""
+    """A stand-in network read as the package reads it (`predict_logits`): wall probability
+    `on_wall` on true walls, `off_wall` elsewhere. Its plain forward pass knows nothing
+    (p = 0.5 everywhere), so a calibration that read that instead would choose otherwise."""
 
     def __init__(self, walls: np.ndarray, on_wall: float, off_wall: float) -> None:
         super().__init__()
@@ -42,6 +44,9 @@ class KnowsTheWalls(nn.Module):
         self.logits = nn.Parameter(torch.logit(torch.from_numpy(probability))[None, None])
 
     def forward(self, inputs: torch.Tensor) -> torch.Tensor:
+        return torch.zeros(inputs.shape[0], 1, *inputs.shape[-2:])
+
+    def predict_logits(self, inputs: torch.Tensor) -> torch.Tensor:
         return self.logits.expand(inputs.shape[0], 1, *inputs.shape[-2:])
 
 

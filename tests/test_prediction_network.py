@@ -1,5 +1,7 @@
 """The LaMa-style generator: any map size, known cells copied through, determinism."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -59,3 +61,36 @@ def test_inference_is_deterministic():
     inputs = torch.from_numpy(encode_observed(random_observed((40, 52), seed=3)))[None]
     with torch.inference_mode():
         torch.testing.assert_close(net(inputs), net(inputs), rtol=0, atol=0)
+
+
+def _half_turn(tensor: torch.Tensor) -> torch.Tensor:
+    return torch.rot90(tensor, 2, (2, 3))
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (7, 2), (33, 65)])
+def test_predict_logits_averages_the_map_and_the_map_turned_by_180_degrees(shape):
+    torch.manual_seed(0)
+    net = LamaGenerator(SMALL).eval()
+    inputs = torch.from_numpy(encode_observed(random_observed(shape, seed=4)))[None]
+    with torch.inference_mode():
+        expected = (net(inputs) + _half_turn(net(_half_turn(inputs)))) / 2
+        torch.testing.assert_close(net.predict_logits(inputs), expected)
+
+
+def test_predict_logits_turn_with_the_map_unlike_one_pass():
+    torch.manual_seed(0)
+    net = LamaGenerator(SMALL).eval()
+    inputs = torch.from_numpy(encode_observed(random_observed((30, 41), seed=5)))[None]
+    with torch.inference_mode():
+        averaged = net.predict_logits(inputs), net.predict_logits(_half_turn(inputs))
+        one_pass = net(inputs), net(_half_turn(inputs))
+    torch.testing.assert_close(_half_turn(averaged[0]), averaged[1])
+    assert not torch.allclose(_half_turn(one_pass[0]), one_pass[1])
+
+
+def test_without_the_turned_view_predict_logits_is_one_forward_pass():
+    torch.manual_seed(0)
+    net = LamaGenerator(dataclasses.replace(SMALL, average_turned_view=False)).eval()
+    inputs = torch.from_numpy(encode_observed(random_observed((20, 24), seed=6)))[None]
+    with torch.inference_mode():
+        torch.testing.assert_close(net.predict_logits(inputs), net(inputs), rtol=0, atol=0)

@@ -5,7 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from tiny_training import SMALL, TINY, tiny_snapshots
+from tiny_training import SMALL, TINY, tiny_overrides, tiny_snapshots
 
 import mapex.prediction.train as train
 from mapex.config import ConfigError, apply_overrides
@@ -183,6 +183,31 @@ def test_members_use_their_own_loss_and_only_the_polish_adds_soft_iou(
     assert {tuple(w) for w in main} == {(2.0, 0.0)}  # wall weight, soft IoU weight
     assert {tuple(w) for w in member} == {(1.0, 0.0)}
     assert {tuple(w) for w in polish} == {(2.0, 3.0)} and len(polish) == TINY.main_polish_steps
+
+
+def test_polish_only_polishes_the_base_in_out_and_calibrates(snapshots, tmp_path, capsys):
+    base_path = _train(snapshots, TINY, tmp_path)
+    base = load_member(base_path).state_dict()
+    argv = ["--polish-only", "--out", str(tmp_path), "--no-kth", *tiny_overrides()]
+    assert train.main(argv) == 0
+    polished = load_member(tmp_path / "g.pt").state_dict()
+    assert not torch.equal(polished["stem.1.weight"], base["stem.1.weight"])
+    _assert_same_weights(base_path, train.base_weights(tmp_path))
+    assert "calibration" in read_metadata(tmp_path / "g.pt")
+    assert capsys.readouterr().out.splitlines()[-1].startswith("g's threshold: ")
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--polish-only"], "no weights file"),
+        (["--polish-only", "--calibrate-only"], "--calibrate-only and --polish-only: give one"),
+    ],
+)
+def test_polish_only_refusals_are_one_line_errors(flags, message, tmp_path, capsys):
+    status = train.main([*flags, "--out", str(tmp_path), "--no-kth"])
+    error = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(error) == 1 and message in error[0]
 
 
 def test_polishing_changes_g_but_not_the_base_its_members_start_from(snapshots, tmp_path):

@@ -27,13 +27,15 @@ TINY = PredictorTrainingConfig(
 
 
 def tiny_overrides() -> list[str]:
-    """`--set` arguments that make the training command's data and network TINY's."""
+    """`--set` arguments that make the training command's data, network and polish TINY's."""
     fields = {
         "procedural_worlds": TINY.procedural_worlds,
         "snapshot_steps": TINY.snapshot_steps,
         "snapshot_every_steps": TINY.snapshot_every_steps,
         "starts_per_world": TINY.starts_per_world,
         "snapshot_methods": ",".join(TINY.snapshot_methods),
+        "main_polish_steps": TINY.main_polish_steps,
+        "precision": TINY.precision,
         **{f"network.{name}": value for name, value in vars(SMALL).items()},
     }
     return [arg for name, value in fields.items() for arg in ("--set", f"{name}={value}")]

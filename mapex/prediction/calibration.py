@@ -76,7 +76,7 @@ def calibrate(
         world = int(snapshots.world_of[index])
         inputs = torch.from_numpy(encode_observed(observed))[None].to(device)
         with torch.inference_mode():
-            probability = torch.sigmoid(model(inputs))[0, 0].float().cpu().numpy()
+            probability = torch.sigmoid(model.predict_logits(inputs))[0, 0].float().cpu().numpy()
         cells = (observed == UNKNOWN) & footprints[world]
         truth = snapshots.worlds[world].occupancy
         ious.append(iou_by_threshold(probability, truth, cells, thresholds))

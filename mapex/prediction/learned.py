@@ -59,7 +59,9 @@ class LearnedEnsemble(Predictor):
         inputs = torch.from_numpy(encode_observed(observed))[None].to(self.device)
         with torch.inference_mode(), autocast(self.device, self.precision):
             outputs = [
-                torch.sigmoid(self.models[k](inputs).float() + self.logit_biases[k])[0, 0]
+                torch.sigmoid(self.models[k].predict_logits(inputs).float() + self.logit_biases[k])[
+                    0, 0
+                ]
                 for k in members
             ]
         return torch.stack(outputs).cpu().numpy()

@@ -156,3 +156,15 @@ class LamaGenerator(nn.Module):
         coarse = self.head(self.blocks(self.stem(x)))
         logits = coarse + self.refine(torch.cat([coarse, x], dim=1))
         return logits[..., :rows, :cols]
+
+    def predict_logits(self, x: torch.Tensor) -> torch.Tensor:
+        """Inference: float (batch, 3, rows, cols) -> wall logits (batch, 1, rows, cols).
+
+        With `average_turned_view`, the mean of the logits for the map and, turned back,
+        for the map turned by 180 degrees. Training crops come in every orientation, but
+        the network is not equivariant, so the two views err in different cells and their
+        mean is the better map (README, "Learned map predictor")."""
+        if not self.config.average_turned_view:
+            return self(x)
+        turned = (2, 3)  # flipping rows and columns turns the map by 180 degrees
+        return (self(x) + self(x.flip(turned)).flip(turned)) / 2

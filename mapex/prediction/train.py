@@ -318,6 +318,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="train nothing: choose the decision threshold of the g.pt in --out",
     )
     parser.add_argument(
+        "--polish-only",
+        action="store_true",
+        help="train only G's polish, from the g-base.pt in --out (writes g.pt, then calibrates)",
+    )
+    parser.add_argument(
         "--set",
         dest="overrides",
         action="append",
@@ -337,8 +342,8 @@ def main(argv: list[str] | None = None) -> int:
         device = _device(args.device)
         if args.threads:
             torch.set_num_threads(args.threads)
-        if args.calibrate_only:
-            load_member(_main_weights(args.out))  # fail before collecting snapshots
+        if args.calibrate_only or args.polish_only:
+            load_member(_polished_from(args))  # fail before collecting snapshots
             members = []
         _check_main_for_members(members, config, args.out)
         kth_dirs = [] if args.no_kth else [str(args.kth_dir / m) for m in TRAINING_KTH_MAPS]
@@ -351,16 +356,23 @@ def main(argv: list[str] | None = None) -> int:
         for member in members:
             path = train_member(member, snapshots, config, device, args.out, args.resume)
             print(f"wrote {path}")
-        if 0 in members:
+        if 0 in members or args.polish_only:
             path = polish_main(snapshots, config, device, args.out, args.resume)
             print(f"wrote {path}")
-        if args.calibrate_only or (0 in members and config.calibrate_main):
+        if args.calibrate_only or ((0 in members or args.polish_only) and config.calibrate_main):
             calibration = calibrate_weights(_main_weights(args.out), snapshots, config)
             print(describe(calibration))
     except (ConfigError, WorldError, WeightsError, ValueError) as error:
         print(f"mapex.prediction.train: error: {error}", file=sys.stderr)
         return 2
     return 0
+
+
+def _polished_from(args: argparse.Namespace) -> Path:
+    """The weights that --calibrate-only (g.pt) or --polish-only (g-base.pt) start from."""
+    if args.calibrate_only and args.polish_only:
+        raise ValueError("--calibrate-only and --polish-only: give one (--polish-only calibrates)")
+    return _main_weights(args.out) if args.calibrate_only else base_weights(args.out)
 
 
 def _check_main_for_members(members: list[int], config: PredictorTrainingConfig, out: Path) -> None:
