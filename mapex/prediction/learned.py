@@ -58,10 +58,9 @@ class LearnedEnsemble(Predictor):
             return np.zeros((len(members), *observed.shape), dtype=np.float32)
         inputs = torch.from_numpy(encode_observed(observed))[None].to(self.device)
         with torch.inference_mode(), autocast(self.device, self.precision):
+            logits = [self.models[k].predict_logits(inputs)[0, 0].float() for k in members]
             outputs = [
-                torch.sigmoid(self.models[k].predict_logits(inputs).float() + self.logit_biases[k])[
-                    0, 0
-                ]
-                for k in members
+                torch.sigmoid(z + self.logit_biases[k])
+                for z, k in zip(logits, members, strict=True)
             ]
         return torch.stack(outputs).cpu().numpy()

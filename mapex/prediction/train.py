@@ -356,10 +356,11 @@ def main(argv: list[str] | None = None) -> int:
         for member in members:
             path = train_member(member, snapshots, config, device, args.out, args.resume)
             print(f"wrote {path}")
-        if 0 in members or args.polish_only:
+        polishes = 0 in members or args.polish_only
+        if polishes:
             path = polish_main(snapshots, config, device, args.out, args.resume)
             print(f"wrote {path}")
-        if args.calibrate_only or ((0 in members or args.polish_only) and config.calibrate_main):
+        if args.calibrate_only or (polishes and config.calibrate_main):
             calibration = calibrate_weights(_main_weights(args.out), snapshots, config)
             print(describe(calibration))
     except (ConfigError, WorldError, WeightsError, ValueError) as error:
