@@ -94,3 +94,23 @@ def test_without_the_turned_view_predict_logits_is_one_forward_pass():
     inputs = torch.from_numpy(encode_observed(random_observed((20, 24), seed=6)))[None]
     with torch.inference_mode():
         torch.testing.assert_close(net.predict_logits(inputs), net(inputs), rtol=0, atol=0)
+
+
+def test_convolutions_are_channels_last_also_after_loading_weights():
+    """The CPU speed of the full-resolution convolutions depends on it (network docstring)."""
+    source = LamaGenerator(SMALL)
+    net = LamaGenerator(SMALL)
+    net.load_state_dict({k: v.clone().contiguous() for k, v in source.state_dict().items()})
+    convolutions = [m.weight for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert convolutions
+    assert all(w.is_contiguous(memory_format=torch.channels_last) for w in convolutions)
+
+
+def test_the_input_memory_layout_does_not_change_the_output():
+    torch.manual_seed(0)
+    net = LamaGenerator(SMALL).eval()
+    inputs = torch.from_numpy(encode_observed(random_observed((37, 45), seed=7)))[None]
+    with torch.inference_mode():
+        plain = net(inputs)
+        nhwc = net(inputs.contiguous(memory_format=torch.channels_last))
+    torch.testing.assert_close(plain, nhwc)
