@@ -9,7 +9,12 @@ from tiny_training import SMALL
 
 from mapex.config import NetworkConfig
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
-from mapex.prediction.network import OUTSIDE_MAP, LamaGenerator, encode_observed
+from mapex.prediction.network import (
+    OUTSIDE_MAP,
+    LamaGenerator,
+    emulated_bfloat16,
+    encode_observed,
+)
 
 
 def random_observed(shape, seed=0):
@@ -114,3 +119,12 @@ def test_the_input_memory_layout_does_not_change_the_output():
         plain = net(inputs)
         nhwc = net(inputs.contiguous(memory_format=torch.channels_last))
     torch.testing.assert_close(plain, nhwc)
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_bfloat16_counts_as_emulated_only_on_a_cpu_without_it(native, monkeypatch):
+    monkeypatch.setattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", lambda: native)
+    cpu = torch.device("cpu")
+    assert emulated_bfloat16(cpu, "bfloat16") is not native
+    assert not emulated_bfloat16(cpu, "float32")
+    assert not emulated_bfloat16(torch.device("cuda"), "bfloat16")

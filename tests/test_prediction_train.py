@@ -325,3 +325,12 @@ def test_too_few_worlds_for_the_members_are_refused_before_any_work(tmp_path, ca
         "mapex.prediction.train: error: 2 training world(s), but g, g1, g2, g3 need at least 3: "
         "raise procedural_worlds or give the KTH maps"
     ]
+
+
+@pytest.mark.parametrize("emulated", [True, False])
+def test_training_warns_once_where_bfloat16_is_emulated(emulated, monkeypatch, capsys):
+    monkeypatch.setattr(train, "emulated_bfloat16", lambda device, precision: emulated)
+    train._warn_if_emulated_bfloat16(torch.device("cpu"), TINY)
+    warning = capsys.readouterr().err.strip().splitlines()
+    assert len(warning) == int(emulated)
+    assert all("--set precision=float32" in line for line in warning)
