@@ -133,6 +133,9 @@ class PredictorTrainingConfig:
     main_polish_steps: int = 1500
     polish_soft_iou_weight: float = 3.0
     polish_learning_rate: float = 1e-3
+    # G is polished this many times from its base weights (seeds seed + 4, + 5, ...) and
+    # g.pt is the mean of the polished weights (a uniform model soup). 1: one polish.
+    polish_runs: int = 1
     calibrate_main: bool = True  # after training G, choose its decision threshold (IoU)
     calibration_snapshots: int = 200  # training snapshots G's threshold is chosen on
     calibration_thresholds: tuple[float, ...] = tuple(round(0.2 + 0.025 * i, 3) for i in range(17))

@@ -235,8 +235,13 @@ def test_without_polish_g_is_its_base(snapshots, tmp_path):
     )
 
 
-def test_an_interrupted_polish_resumes_to_the_same_weights(snapshots, tmp_path, monkeypatch):
-    config = dataclasses.replace(TINY, main_polish_steps=5, checkpoint_every_steps=3)
+@pytest.mark.parametrize(("polish_runs", "steps"), [(1, 5), (2, 4)])  # Ctrl-C in run 0 / 1
+def test_an_interrupted_polish_resumes_to_the_same_weights(
+    snapshots, tmp_path, monkeypatch, polish_runs, steps
+):
+    config = dataclasses.replace(
+        TINY, main_polish_steps=steps, checkpoint_every_steps=3, polish_runs=polish_runs
+    )
     cpu = torch.device("cpu")
     for out in (tmp_path / "a", tmp_path / "b"):
         _train(snapshots, config, out)
@@ -246,6 +251,45 @@ def test_an_interrupted_polish_resumes_to_the_same_weights(snapshots, tmp_path, 
         monkeypatch,
     )
     _assert_same_weights(straight, resumed)
+
+
+def test_several_polish_runs_average_their_weights(snapshots, tmp_path):
+    cpu = torch.device("cpu")
+    runs = []
+    for run in range(2):  # run k of a soup polishes with seed + 4 + k
+        config = dataclasses.replace(TINY, seed=run)
+        _train(snapshots, TINY, tmp_path / f"run{run}")
+        runs.append(
+            load_member(train.polish_main(snapshots, config, cpu, tmp_path / f"run{run}", False))
+        )
+    _train(snapshots, TINY, tmp_path / "soup")
+    config = dataclasses.replace(TINY, polish_runs=2)
+    soup_path = train.polish_main(snapshots, config, cpu, tmp_path / "soup", False)
+    soup = load_member(soup_path).state_dict()
+    first, second = (model.state_dict() for model in runs)
+    assert not torch.equal(first["stem.1.weight"], second["stem.1.weight"])
+    for key, value in soup.items():
+        mean = (first[key] + second[key]) / 2 if value.is_floating_point() else first[key]
+        torch.testing.assert_close(value, mean, rtol=0, atol=2e-3)
+    assert read_metadata(soup_path)["polish_runs"] == 2
+
+
+def test_mean_state_dict_averages_floats_and_keeps_counters():
+    states = [
+        {"w": torch.tensor([1.0, 2.0]), "n": torch.tensor(3)},
+        {"w": torch.tensor([3.0, 6.0]), "n": torch.tensor(5)},
+    ]
+    mean = train.mean_state_dict(states)
+    assert torch.equal(mean["w"], torch.tensor([2.0, 4.0])) and mean["n"].item() == 3
+
+
+def test_zero_polish_runs_is_a_one_line_error(tmp_path, capsys):
+    argv = ["--out", str(tmp_path), "--no-kth", "--set", "polish_runs=0"]
+    status = train.main(argv)
+    error = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and error == [
+        "mapex.prediction.train: error: polish_runs=0: G needs at least one polish run"
+    ]
 
 
 def _wall_crops() -> tuple[torch.Tensor, torch.Tensor]:

@@ -155,26 +155,52 @@ def polish_main(
 
     Cross-entropy fixes G's walls only up to their operating point; the evaluation
     scores the IoU of the thresholded walls, which the soft IoU term optimises directly.
-    Its members start from the base weights, so polishing G changes P_t only."""
+    With `polish_runs` > 1, G is polished that many times from its base weights, each
+    run on its own batch stream, and g.pt is the mean of their weights (a uniform model
+    soup): fine-tunes of one start average without leaving its basin, and the mean
+    cancels part of each run's noise at no cost at inference. Its members start from
+    the base weights, so polishing G changes P_t only."""
     base = base_weights(out_dir)
-    schedule = _Schedule(
-        label="polish g",
+    polished, wall_time_s = [], 0.0
+    for run in range(config.polish_runs):
+        schedule = _polish_schedule(config, out_dir, run)
+        torch.manual_seed(schedule.seed)
+        model = load_member(base).train().to(device)
+        wall_time_s += _fit(model, snapshots, schedule, config, device, resume)
+        polished.append(model)
+    model.load_state_dict(mean_state_dict([m.state_dict() for m in polished]))
+    metadata = read_metadata(base) | {
+        "polish_steps": config.main_polish_steps,
+        "polish_runs": config.polish_runs,
+        "polish_soft_iou_weight": config.polish_soft_iou_weight,
+        "polish_wall_time_s": round(wall_time_s, 1),
+    }
+    return save_weights(_main_weights(out_dir), model, metadata)
+
+
+def _polish_schedule(config: PredictorTrainingConfig, out_dir: Path, run: int) -> _Schedule:
+    """The `run`-th polish of G (0 = the only one when `polish_runs` is 1)."""
+    suffix = f"-{run}" if run else ""
+    return _Schedule(
+        label=f"polish g{suffix}",
         steps=config.main_polish_steps,
         learning_rate=config.polish_learning_rate,
         wall_weight=config.wall_weight,
         soft_iou_weight=config.polish_soft_iou_weight,
-        seed=config.seed + len(MEMBER_NAMES),
-        checkpoint=out_dir / "checkpoints" / "g-polish.ckpt",
+        seed=config.seed + len(MEMBER_NAMES) + run,
+        checkpoint=out_dir / "checkpoints" / f"g-polish{suffix}.ckpt",
     )
-    torch.manual_seed(schedule.seed)
-    model = load_member(base).train().to(device)
-    wall_time_s = _fit(model, snapshots, schedule, config, device, resume)
-    metadata = read_metadata(base) | {
-        "polish_steps": schedule.steps,
-        "polish_soft_iou_weight": schedule.soft_iou_weight,
-        "polish_wall_time_s": wall_time_s,
+
+
+def mean_state_dict(states: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """The element-wise mean of networks' floating-point weights (others from the first)."""
+    first = states[0]
+    return {
+        key: torch.stack([state[key] for state in states]).mean(0)
+        if value.is_floating_point()
+        else value
+        for key, value in first.items()
     }
-    return save_weights(_main_weights(out_dir), model, metadata)
 
 
 def _fit(
@@ -338,6 +364,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         config = apply_overrides(PredictorTrainingConfig(), args.overrides)
+        if config.polish_runs < 1:
+            raise ValueError(f"polish_runs={config.polish_runs}: G needs at least one polish run")
         members = [MEMBER_NAMES.index(name) for name in _member_names(args.members)]
         device = _device(args.device)
         if args.threads:
