@@ -124,6 +124,7 @@ class PredictorTrainingConfig:
     # the KTH maps, instead of solid wall.
     free_outside_plans: bool = True
     learning_rate: float = 2e-3
+    warmup_share: float = 0.1  # of each run's steps spent raising the learning rate (one cycle)
     weight_decay: float = 1e-4
     wall_weight: float = 2.0  # BCE weight of wall cells (walls are the rarer class)
     member_wall_weight: float = 1.0  # the same for G_1..G_3's fine-tuning (plain cross-entropy)

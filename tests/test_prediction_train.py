@@ -60,6 +60,17 @@ def test_a_few_training_steps_write_loadable_weights(snapshots, tmp_path):
     assert metadata["steps"] == 4 and metadata["snapshots"] == 3
 
 
+@pytest.mark.parametrize("steps", [1, 2, 3, 10, 20])
+def test_short_runs_train_whatever_their_length(snapshots, tmp_path, steps):
+    path = _train(snapshots, dataclasses.replace(TINY, main_steps=steps), tmp_path)
+    assert read_metadata(path)["steps"] == steps
+
+
+@pytest.mark.parametrize("steps", [1200, 1500, 6000])
+def test_the_shipped_run_lengths_warm_up_for_a_tenth_of_their_steps(steps):
+    assert train.warmup_fraction(steps, 0.1) == 0.1
+
+
 def _train(snapshots, config, out_dir, resume=False):
     return train.train_member(0, snapshots, config, torch.device("cpu"), out_dir, resume)
 
@@ -283,13 +294,19 @@ def test_mean_state_dict_averages_floats_and_keeps_counters():
     assert torch.equal(mean["w"], torch.tensor([2.0, 4.0])) and mean["n"].item() == 3
 
 
-def test_zero_polish_runs_is_a_one_line_error(tmp_path, capsys):
-    argv = ["--out", str(tmp_path), "--no-kth", "--set", "polish_runs=0"]
-    status = train.main(argv)
+@pytest.mark.parametrize(
+    "setting, message",
+    [
+        ("polish_runs=0", "polish_runs=0: G needs at least one polish run"),
+        ("main_steps=-5", "main_steps=-5: a step count cannot be negative"),
+        ("main_polish_steps=-1", "main_polish_steps=-1: a step count cannot be negative"),
+        ("warmup_share=1.5", "warmup_share=1.5: choose a share between 0 and 1"),
+    ],
+)
+def test_impossible_schedules_are_one_line_errors(setting, message, tmp_path, capsys):
+    status = train.main(["--out", str(tmp_path), "--no-kth", "--set", setting])
     error = capsys.readouterr().err.strip().splitlines()
-    assert status == 2 and error == [
-        "mapex.prediction.train: error: polish_runs=0: G needs at least one polish run"
-    ]
+    assert status == 2 and error == [f"mapex.prediction.train: error: {message}"]
 
 
 def _wall_crops() -> tuple[torch.Tensor, torch.Tensor]:

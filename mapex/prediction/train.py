@@ -219,7 +219,10 @@ def _fit(
         model.parameters(), lr=schedule.learning_rate, weight_decay=config.weight_decay
     )
     rates = torch.optim.lr_scheduler.OneCycleLR(
-        optimizer, max_lr=schedule.learning_rate, total_steps=schedule.steps, pct_start=0.1
+        optimizer,
+        max_lr=schedule.learning_rate,
+        total_steps=schedule.steps,
+        pct_start=warmup_fraction(schedule.steps, config.warmup_share),
     )
     start, elapsed = 0, 0.0
     if resume and schedule.checkpoint.exists():
@@ -255,6 +258,15 @@ def _fit(
         if done % config.checkpoint_every_steps == 0 or done == steps:
             _save_checkpoint(schedule.checkpoint, model, optimizer, rates, done, began)
     return round(time.perf_counter() - began, 1)
+
+
+def warmup_fraction(steps: int, share: float) -> float:
+    """OneCycle's warm-up as a fraction of `steps`: `share` of them rounded to whole steps,
+    at least two (and fewer than `steps`). torch's OneCycleLR divides by zero when the
+    warm-up ends at its first step, as a tenth of a 10-step run would."""
+    if steps < 3:
+        return share
+    return min(max(2, round(share * steps)), steps - 1) / steps
 
 
 def _metadata(
@@ -364,8 +376,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         config = apply_overrides(PredictorTrainingConfig(), args.overrides)
-        if config.polish_runs < 1:
-            raise ValueError(f"polish_runs={config.polish_runs}: G needs at least one polish run")
+        _check_schedule(config)
         members = [MEMBER_NAMES.index(name) for name in _member_names(args.members)]
         device = _device(args.device)
         if args.threads:
@@ -406,6 +417,17 @@ def _warn_if_emulated_bfloat16(device: torch.device, config: PredictorTrainingCo
             "times slower than --set precision=float32 (other weights, same quality)",
             file=sys.stderr,
         )
+
+
+def _check_schedule(config: PredictorTrainingConfig) -> None:
+    """Refuse, before any work, step counts and a warm-up that no run can have."""
+    if config.polish_runs < 1:
+        raise ValueError(f"polish_runs={config.polish_runs}: G needs at least one polish run")
+    for field in ("main_steps", "member_steps", "main_polish_steps"):
+        if getattr(config, field) < 0:
+            raise ValueError(f"{field}={getattr(config, field)}: a step count cannot be negative")
+    if not 0.0 < config.warmup_share < 1.0:
+        raise ValueError(f"warmup_share={config.warmup_share}: choose a share between 0 and 1")
 
 
 def _polished_from(args: argparse.Namespace) -> Path:
