@@ -296,7 +296,8 @@ class ServicesConfig:
     predict_timeout_s: float = 10.0  # per-member prediction query; a hung worker costs this once
     supervision_poll_s: float = 0.2  # services.up / evaluate: how often children are checked
     publish_period_s: float = 0.1  # planner -> viewers: at most one batch of maps per period
-    predict_retries: int = 1  # re-sends of a query that no worker was routed (no reply at all)
+    predict_retries: int = 3  # re-sends of a query that no worker was routed (no reply at all)
+    predict_retry_pause_s: float = 0.2  # before the first re-send; doubles for each next one
     liveliness_query_timeout_s: float = 2.0  # planner's start-up discovery of live workers
     predictor_threads: int = 1  # torch CPU threads of one predictor worker (DESIGN.md)
     predictor_drain_s: float = 3.0  # on shutdown, wait this long for the query being computed

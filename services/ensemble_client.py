@@ -187,8 +187,10 @@ class ZenohEnsemble(Predictor):
 
         Waits at most `services.predict_timeout_s` (all queries run concurrently). A query
         that ends with no reply at all (no queryable was routed: a worker just left, a link
-        was being re-established) is sent again, up to `services.predict_retries` times; a
-        timed-out or refused one is not (a hung worker costs one timeout, DESIGN.md).
+        or a route was being re-established: Zenoh then ends a query at once with no
+        reply, eclipse-zenoh/zenoh#2767) is sent again after a short pause, up to
+        `services.predict_retries` times; a timed-out or refused one is not (a hung worker
+        costs one timeout, DESIGN.md).
         """
         return self._finish(self._start(observed, members))
 
@@ -237,6 +239,7 @@ class ZenohEnsemble(Predictor):
             unrouted = [k for k, (_, routed) in collected.items() if not routed]
             if not unrouted or attempt == self.services.predict_retries:
                 break
+            time.sleep(self.services.predict_retry_pause_s * 2**attempt)  # let routes settle
             sent = (self._send(k, inflight.payload) for k in unrouted)
             pending = [p for p in sent if p is not None]
         answered = tuple(k for k in members if results.get(k) is not None)

@@ -125,6 +125,21 @@ class RecordingSession:
         return iter(replies)
 
 
+class UnroutedSession(RecordingSession):
+    """A session stand-in whose first `unrouted` gets end at once with no reply, as Zenoh's
+    do while a route to the queryable is being built."""
+
+    def __init__(self, session, unrouted: int) -> None:
+        super().__init__(session)
+        self.unrouted = unrouted
+
+    def get(self, key, **options):
+        if len(self.gets) < self.unrouted:
+            self.gets.append((str(key), []))
+            return iter(())
+        return super().get(key, **options)
+
+
 # ---------------------------------------------------------------------- real worker processes
 
 
@@ -312,3 +327,29 @@ def test_the_client_keeps_only_valid_replies(rogue_pair, mode):
             np.testing.assert_allclose(answers.probabilities[0], 0.5, atol=1 / 510)
     token.undeclare()
     queryable.undeclare()
+
+
+@pytest.mark.parametrize("unrouted", [0, 1, 3, 4])
+def test_a_query_left_unrouted_is_sent_again_up_to_the_retry_limit(rogue_pair, unrouted):
+    planner, rogue = rogue_pair
+    key = predict_key("g", "rogue")
+
+    def answer(query):
+        request = PredictRequest.decode(query.payload.to_bytes())
+        query.reply(key, _rogue_reply("good", request))
+
+    queryable = rogue.declare_queryable(key, answer)
+    token = rogue.liveliness().declare_token(alive_predictor_key("g", "rogue"))
+    services = ServicesConfig(
+        predict_timeout_s=2.0, liveliness_query_timeout_s=0.5, predict_retries=3,
+        predict_retry_pause_s=0.01,
+    )  # fmt: skip
+    session = UnroutedSession(planner, unrouted)
+    with ZenohEnsemble(session, services) as client:
+        assert client.wait_for_workers(("g",), timeout_s=5.0)
+        answers = client.predict_available(partly_observed((12, 10)), (0,))
+    token.undeclare()
+    queryable.undeclare()
+    answered = unrouted <= services.predict_retries
+    assert answers.answered == ((0,) if answered else ())
+    assert len(session.gets) == min(unrouted + 1, services.predict_retries + 1)
