@@ -7,9 +7,11 @@
 Episodes run in parallel planner processes (`services.planner --world ... --start ...`,
 `--jobs` at a time) that share one predictor pool: the workers spawned here, plus any
 worker on another machine that joins the same Zenoh network (`--connect`, see deploy/), so
-adding workers adds throughput. Each finished episode is written atomically to
+adding workers adds throughput. Each planner writes its episode to a hidden folder, which
+this process, once the planner has exited cleanly, renames to
 `<out>/<world>-<method>-start<i>-seed<s>/`; rerunning the same command skips those, so a
-kill at any moment loses at most the episodes in flight. At the end the report
+kill at any moment loses at most the episodes in flight (and a planner orphaned by the kill,
+whose pool is gone, can add nothing). At the end the report
 (`python -m mapex.report <out>`) is written to `<out>/report/`.
 """
 
@@ -96,6 +98,26 @@ def finished(episode: Episode, out_dir: Path) -> bool:
     return (out_dir / episode.name / METRICS_FILE).is_file()
 
 
+def planner_folder(episode: Episode, out_dir: Path) -> Path:
+    """Where the episode's planner writes its results: hidden until `publish` renames it.
+
+    Only a live evaluation publishes a run, so a planner orphaned by a kill (whose pool died
+    with its supervisor, leaving its last metric samples degraded) can never add one.
+    """
+    return out_dir / f".{episode.name}.planner"
+
+
+def publish(episode: Episode, out_dir: Path) -> bool:
+    """Move the folder the episode's planner wrote to its results folder; whether it was there."""
+    written = planner_folder(episode, out_dir)
+    if not (written / METRICS_FILE).is_file():
+        return False
+    if (out_dir / episode.name).exists():
+        shutil.rmtree(out_dir / episode.name)
+    written.rename(out_dir / episode.name)
+    return True
+
+
 def remove_staging(out_dir: Path) -> int:
     """Delete half-written folders a kill left behind (names start with '.'); how many."""
     stale = [p for p in out_dir.glob(".*") if p.is_dir()] if out_dir.is_dir() else []
@@ -110,7 +132,7 @@ def planner_spec(
     planner_args = [
         "--run", episode.run_id, "--world", episode.world_spec, "--start", str(episode.start),
         "--method", episode.method, "--seed", str(episode.seed), "--steps", str(args.steps),
-        "--out", str(out_dir / episode.name), "--no-progress",
+        "--out", str(planner_folder(episode, out_dir)), "--no-progress",
     ]  # fmt: skip
     for override in args.overrides:
         planner_args += ["--set", override]
@@ -147,7 +169,7 @@ def run_episodes(
                 if code is None:
                     continue
                 del running[name]
-                if code == 0 and finished(episode, args.out):
+                if code == 0 and publish(episode, args.out):
                     done += 1
                 else:
                     failures.append(f"{episode.name}: planner exited with {code}")

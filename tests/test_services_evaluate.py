@@ -13,7 +13,14 @@ import pytest
 from service_processes import REPO_ROOT, free_loopback_port, until
 from up_processes import pid_alive
 
-from services.evaluate import Episode, finished, plan_episodes, remove_staging
+from services.evaluate import (
+    Episode,
+    finished,
+    plan_episodes,
+    planner_folder,
+    publish,
+    remove_staging,
+)
 
 SMALL = ["--maps", "generated:0", "--methods", "nearest,mapex", "--starts", "0,1",
          "--steps", "60"]  # fmt: skip
@@ -29,25 +36,38 @@ def evaluate(out, *extra: str, log=None) -> subprocess.Popen:
     )
 
 
-def run_table(out) -> dict:
-    """What a rerun must reproduce of each finished run, by folder name.
+def run_records(out) -> dict:
+    """Each finished run's metrics.json, by folder name."""
+    return {m.parent.name: json.loads(m.read_text()) for m in sorted(out.glob("*/metrics.json"))}
 
-    All of it (AUCs, trajectory length, re-plans) for a run the pool served in time. When a
-    member did not answer in time, the run is degraded (DESIGN.md) and its timing-dependent
-    part is left out: after a missed metric sample its IoU and TU, after a missed re-plan
-    everything but its length.
+
+def reproduced_part(record: dict, other: dict) -> tuple:
+    """What a rerun must reproduce of a run recorded as `record` and, in the other
+    evaluation, as `other`.
+
+    All of it (AUCs, trajectory length, re-plans) when the pool served both in time. When a
+    member did not answer in time in either, that run is degraded (DESIGN.md) and its
+    timing-dependent part is left out: after a missed metric sample its IoU and TU, after a
+    missed re-plan everything but its length.
     """
-    table = {}
-    for metrics in sorted(out.glob("*/metrics.json")):
-        record = json.loads(metrics.read_text())
-        auc = dict(record["auc"])
-        if record["degraded_steps"]:
-            table[metrics.parent.name] = record["steps"]
-            continue
-        if record["degraded_metric_samples"]:
-            auc = {"coverage": auc["coverage"]}
-        table[metrics.parent.name] = (auc, record["steps"], record["replans"])
-    return table
+    if record["degraded_steps"] or other["degraded_steps"]:
+        return (record["steps"],)
+    auc = dict(record["auc"])
+    if record["degraded_metric_samples"] or other["degraded_metric_samples"]:
+        auc = {"coverage": auc["coverage"]}
+    return auc, record["steps"], record["replans"]
+
+
+def comparable_tables(first: dict, second: dict) -> tuple[dict, dict]:
+    """The two evaluations' runs, each reduced to what both must agree on."""
+
+    def reduce(table: dict, other: dict) -> dict:
+        return {
+            name: reproduced_part(record, other[name]) if name in other else record
+            for name, record in table.items()
+        }
+
+    return reduce(first, second), reduce(second, first)
 
 
 def pool_warnings(*logs) -> str:
@@ -76,6 +96,18 @@ def test_only_complete_folders_count_and_staging_is_removed(tmp_path):
     assert remove_staging(tmp_path) == 1 and remove_staging(tmp_path) == 0
 
 
+def test_a_planner_writes_hidden_and_only_the_evaluation_publishes(tmp_path):
+    episode = Episode("generated:0", "generated:0", "nearest", 0, 0)
+    written = planner_folder(episode, tmp_path)
+    assert written.parent == tmp_path and written.name.startswith(".")
+    assert not publish(episode, tmp_path)  # the planner wrote nothing
+    written.mkdir()
+    (written / "metrics.json").write_text("{}")
+    assert not finished(episode, tmp_path)
+    assert publish(episode, tmp_path) and finished(episode, tmp_path)
+    assert not written.exists() and remove_staging(tmp_path) == 0
+
+
 def test_a_killed_and_resumed_evaluation_gives_the_same_table(tmp_path):
     whole, resumed = tmp_path / "whole", tmp_path / "resumed"
     with open(tmp_path / "whole.log", "wb") as log:
@@ -92,8 +124,9 @@ def test_a_killed_and_resumed_evaluation_gives_the_same_table(tmp_path):
     with open(tmp_path / "resumed.log", "wb") as log:
         assert evaluate(resumed, log=log).wait(600) == 0
     logs = [tmp_path / name for name in ("whole.log", "killed.log", "resumed.log")]
-    assert run_table(resumed) == run_table(whole), pool_warnings(*logs)
-    assert len(run_table(whole)) == 4
+    assert len(run_records(whole)) == 4
+    resumed_table, whole_table = comparable_tables(run_records(resumed), run_records(whole))
+    assert resumed_table == whole_table, pool_warnings(*logs)
     assert not list(resumed.glob(".*")), "a half-written run was left behind"
     report = json.loads((resumed / "report" / "report.json").read_text())
     assert report  # the report of the resumed evaluation was written
