@@ -37,8 +37,9 @@ def evaluate(out, *extra: str, log=None) -> subprocess.Popen:
 
 
 def run_records(out) -> dict:
-    """Each finished run's metrics.json, by folder name."""
-    return {m.parent.name: json.loads(m.read_text()) for m in sorted(out.glob("*/metrics.json"))}
+    """Each published run's metrics.json, by folder name (hidden folders are being written)."""
+    found = sorted(out.glob("*/metrics.json"))
+    return {m.parent.name: json.loads(m.read_text()) for m in found if m.parent.name[0] != "."}
 
 
 def reproduced_part(record: dict, other: dict) -> tuple:
@@ -115,14 +116,17 @@ def test_a_killed_and_resumed_evaluation_gives_the_same_table(tmp_path):
     with open(tmp_path / "killed.log", "wb") as log:
         first = evaluate(resumed, "--no-report", log=log)
         try:
-            until(lambda: list(resumed.glob("*/metrics.json")), "a first finished run", 300)
+            until(lambda: run_records(resumed), "a first published run", 300)
         finally:
             first.send_signal(signal.SIGKILL)
             first.wait(10)
     children = [int(pid) for pid in _started_pids(tmp_path / "killed.log")]
     until(lambda: not any(pid_alive(pid) for pid in children), "the orphans to stop", 30)
+    published = run_records(resumed)
     with open(tmp_path / "resumed.log", "wb") as log:
         assert evaluate(resumed, log=log).wait(600) == 0
+    after = run_records(resumed)
+    assert {name: after[name] for name in published} == published  # kept, not run again
     logs = [tmp_path / name for name in ("whole.log", "killed.log", "resumed.log")]
     assert len(run_records(whole)) == 4
     resumed_table, whole_table = comparable_tables(run_records(resumed), run_records(whole))
