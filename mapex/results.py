@@ -83,9 +83,14 @@ def write_results(result: EpisodeResult, world: World, out_dir: Path) -> Path:
         world.occupancy,
         result.trajectory,
     )
+    return move_into_place(staging, out_dir)
+
+
+def move_into_place(folder: Path, out_dir: Path) -> Path:
+    """Rename a whole written `folder` to `out_dir`, replacing an older one; `out_dir`."""
     if out_dir.exists():
         shutil.rmtree(out_dir)
-    staging.rename(out_dir)
+    folder.rename(out_dir)
     return out_dir
 
 

@@ -41,7 +41,7 @@ from mapex.config import (
 )
 from mapex.methods import ABLATIONS, MAIN_COMPARISON, METHODS
 from mapex.prediction.base import MEMBER_NAMES
-from mapex.results import METRICS_FILE
+from mapex.results import METRICS_FILE, move_into_place
 from mapex.worlds import WorldError, load_world
 from services.codec import DEFAULT_SERVICES
 from services.keys import ID_MAX_CHARS
@@ -112,9 +112,7 @@ def publish(episode: Episode, out_dir: Path) -> bool:
     written = planner_folder(episode, out_dir)
     if not (written / METRICS_FILE).is_file():
         return False
-    if (out_dir / episode.name).exists():
-        shutil.rmtree(out_dir / episode.name)
-    written.rename(out_dir / episode.name)
+    move_into_place(written, out_dir / episode.name)
     return True
 
 

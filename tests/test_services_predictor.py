@@ -7,6 +7,7 @@ at teardown whatever happens.
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import subprocess
 import sys
@@ -304,20 +305,30 @@ def _rogue_reply(mode: str, request: PredictRequest) -> bytes:
     )
 
 
-@pytest.mark.parametrize("mode", [*ROGUE_MODES, "silent"])
-def test_the_client_keeps_only_valid_replies(rogue_pair, mode):
-    planner, rogue = rogue_pair
+@contextlib.contextmanager
+def rogue_worker(rogue, mode: str):
+    """A hand-written live 'worker' of member g on session `rogue`, answering as `mode` says;
+    a silent one never reads its queries (they wait unanswered until the client's timeout)."""
     key = predict_key("g", "rogue")
 
     def answer(query):
         request = PredictRequest.decode(query.payload.to_bytes())
         query.reply(key, _rogue_reply(mode, request))
 
-    # a silent worker never reads its queries: they wait unanswered until the client's timeout
     queryable = rogue.declare_queryable(key, None if mode == "silent" else answer)
     token = rogue.liveliness().declare_token(alive_predictor_key("g", "rogue"))
+    try:
+        yield
+    finally:
+        token.undeclare()
+        queryable.undeclare()
+
+
+@pytest.mark.parametrize("mode", [*ROGUE_MODES, "silent"])
+def test_the_client_keeps_only_valid_replies(rogue_pair, mode):
+    planner, rogue = rogue_pair
     services = ServicesConfig(predict_timeout_s=0.5, liveliness_query_timeout_s=0.5)
-    with ZenohEnsemble(planner, services) as client:
+    with rogue_worker(rogue, mode), ZenohEnsemble(planner, services) as client:
         assert client.wait_for_workers(("g",), timeout_s=5.0)
         crop = partly_observed((12, 10))
         answers = client.predict_available(crop, (0, 1))  # g1 has no worker at all
@@ -325,31 +336,19 @@ def test_the_client_keeps_only_valid_replies(rogue_pair, mode):
         if mode == "good":
             assert answers.workers == {0: "rogue"}
             np.testing.assert_allclose(answers.probabilities[0], 0.5, atol=1 / 510)
-    token.undeclare()
-    queryable.undeclare()
 
 
 @pytest.mark.parametrize("unrouted", [0, 1, 3, 4])
 def test_a_query_left_unrouted_is_sent_again_up_to_the_retry_limit(rogue_pair, unrouted):
     planner, rogue = rogue_pair
-    key = predict_key("g", "rogue")
-
-    def answer(query):
-        request = PredictRequest.decode(query.payload.to_bytes())
-        query.reply(key, _rogue_reply("good", request))
-
-    queryable = rogue.declare_queryable(key, answer)
-    token = rogue.liveliness().declare_token(alive_predictor_key("g", "rogue"))
     services = ServicesConfig(
         predict_timeout_s=2.0, liveliness_query_timeout_s=0.5, predict_retries=3,
         predict_retry_pause_s=0.01,
     )  # fmt: skip
     session = UnroutedSession(planner, unrouted)
-    with ZenohEnsemble(session, services) as client:
+    with rogue_worker(rogue, "good"), ZenohEnsemble(session, services) as client:
         assert client.wait_for_workers(("g",), timeout_s=5.0)
         answers = client.predict_available(partly_observed((12, 10)), (0,))
-    token.undeclare()
-    queryable.undeclare()
     answered = unrouted <= services.predict_retries
     assert answers.answered == ((0,) if answered else ())
     assert len(session.gets) == min(unrouted + 1, services.predict_retries + 1)
