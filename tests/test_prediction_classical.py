@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -220,3 +221,18 @@ def test_no_members_and_bad_maps_are_rejected(predictor: ClassicalInpaintingEnse
         ClassicalInpaintingEnsemble(ClassicalPredictorConfig(members=()))
     with pytest.raises(ValueError, match="2-D uint8"):
         predictor.predict_members(np.zeros((4, 4), dtype=np.float64), range(4))
+
+
+def test_a_non_finite_inpainting_falls_back_to_the_prior(monkeypatch: pytest.MonkeyPatch) -> None:
+    """OpenCV's inpaint once returned NaN on a tiny map; such cells must take the prior."""
+    member = ClassicalPredictorConfig().members[0]
+    observed = _reveal_disc(_floor_plan((40, 40), room_cells=12), (20, 20), 8)
+    monkeypatch.setattr(
+        cv2, "inpaint", lambda image, *_: np.full_like(image, np.nan, dtype=np.float32)
+    )
+    probability = inpaint_member(observed, member)
+    assert np.isfinite(probability).all()
+    in_band = np.interp(member.prior, (0.0, member.wall_level, 1.0), (0, 0.5, 1))
+    unknown = probability[observed == UNKNOWN]
+    assert np.isclose(unknown, member.prior).any()
+    assert (np.isclose(unknown, member.prior) | np.isclose(unknown, in_band)).all()

@@ -74,6 +74,9 @@ def inpaint_member(observed: np.ndarray, member: InpaintMemberConfig) -> np.ndar
     painted = cv2.inpaint(
         probability, in_band.view(np.uint8), member.radius_cells, _CV_METHODS[member.method]
     )
+    # cv2.inpaint has been seen to return NaN on a tiny (2 x 7) map once in a full test run
+    # and never on its own: such a cell knows nothing, so it takes the member's prior.
+    painted = np.nan_to_num(painted, nan=member.prior, posinf=1.0, neginf=0.0)
     probability[in_band] = np.interp(painted[in_band], (0.0, member.wall_level, 1.0), (0, 0.5, 1))
     return _to_map_scale(probability, member.scale, observed.shape)
 
