@@ -76,8 +76,8 @@ def inpaint_member(observed: np.ndarray, member: InpaintMemberConfig) -> np.ndar
     )
     # cv2.inpaint has been seen to return NaN on a tiny (2 x 7) map once in a full test run
     # and never on its own: such a cell knows nothing, so it takes the member's prior.
-    painted = np.nan_to_num(painted, nan=member.prior, posinf=1.0, neginf=0.0)
-    probability[in_band] = np.interp(painted[in_band], (0.0, member.wall_level, 1.0), (0, 0.5, 1))
+    band_values = np.nan_to_num(painted[in_band], nan=member.prior, posinf=1.0, neginf=0.0)
+    probability[in_band] = np.interp(band_values, (0.0, member.wall_level, 1.0), (0, 0.5, 1))
     return _to_map_scale(probability, member.scale, observed.shape)
 
 
