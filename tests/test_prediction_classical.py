@@ -232,7 +232,7 @@ def test_a_non_finite_inpainting_falls_back_to_the_prior(monkeypatch: pytest.Mon
     )
     probability = inpaint_member(observed, member)
     assert np.isfinite(probability).all()
-    in_band = np.interp(member.prior, (0.0, member.wall_level, 1.0), (0, 0.5, 1))
+    prior_in_band = np.interp(member.prior, (0.0, member.wall_level, 1.0), (0, 0.5, 1))
     unknown = probability[observed == UNKNOWN]
     assert np.isclose(unknown, member.prior).any()
-    assert (np.isclose(unknown, member.prior) | np.isclose(unknown, in_band)).all()
+    assert (np.isclose(unknown, member.prior) | np.isclose(unknown, prior_in_band)).all()
