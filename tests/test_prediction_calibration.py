@@ -91,6 +91,7 @@ def test_calibration_picks_the_threshold_with_the_best_iou(snapshots):
     ious = calibration.mean_iou_by_threshold
     assert ious["0.250"] == 1.0 and ious["0.500"] == 0.0 and 0 < ious["0.050"] < 1
     assert calibration.snapshots == len(snapshots.observed)
+    assert calibration.kth_share == config.kth_share  # the sample's mix is on record
 
 
 def test_the_stored_bias_shifts_only_that_members_logits(tmp_path):

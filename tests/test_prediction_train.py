@@ -282,7 +282,9 @@ def test_several_polish_runs_average_their_weights(snapshots, tmp_path):
     for key, value in soup.items():
         mean = (first[key] + second[key]) / 2 if value.is_floating_point() else first[key]
         torch.testing.assert_close(value, mean, rtol=0, atol=2e-3)
-    assert read_metadata(soup_path)["polish_runs"] == 2
+    metadata = read_metadata(soup_path)
+    assert metadata["polish_runs"] == 2
+    assert metadata["polish_training_config"] == dataclasses.asdict(config)
 
 
 def test_mean_state_dict_averages_floats_and_keeps_counters():

@@ -35,6 +35,7 @@ class Calibration:
     threshold: float
     logit_bias: float
     snapshots: int
+    kth_share: float  # the sample's share of KTH snapshots (the training crops' mix)
     mean_iou_by_threshold: dict[str, float]  # "0.30" -> mean IoU over the snapshots
 
 
@@ -86,6 +87,7 @@ def calibrate(
         threshold=best,
         logit_bias=logit_bias(best),
         snapshots=len(ious),
+        kth_share=config.kth_share,
         mean_iou_by_threshold={
             f"{t:.3f}": round(float(m), 4) for t, m in zip(thresholds, means, strict=True)
         },

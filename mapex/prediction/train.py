@@ -174,6 +174,7 @@ def polish_main(
         "polish_runs": config.polish_runs,
         "polish_soft_iou_weight": config.polish_soft_iou_weight,
         "polish_wall_time_s": round(wall_time_s, 1),
+        "polish_training_config": dataclasses.asdict(config),  # may differ from G's base
     }
     return save_weights(_main_weights(out_dir), model, metadata)
 
