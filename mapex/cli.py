@@ -18,7 +18,8 @@ from mapex.config import (
 from mapex.methods import METHODS
 from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
 from mapex.prediction.weights import WeightsError
-from mapex.worlds import DEFAULT_WORLD, WorldError, load_world
+from mapex.worlds import DEFAULT_WORLD, WorldError, load_world, start_label
+from mapex.worlds.starts import start_type
 
 DEFAULT_RESULTS_DIR = Path("results")
 
@@ -56,7 +57,12 @@ def build_parser() -> argparse.ArgumentParser:
     add_precision_argument(run)
     run.add_argument("--steps", type=int, default=1000, help="time budget T; default: %(default)s")
     run.add_argument(
-        "--start", type=int, default=0, choices=range(4), help="start pose (corner 0-3); default: 0"
+        "--start",
+        type=start_type,
+        default=0,
+        metavar="CORNER|ROW,COL",
+        help="start pose: a corner 0-3 of the valid space, or an explicit cell ROW,COL of the "
+        "0.1 m grid (free, inside valid space, 3 cells clear of walls); default: 0",
     )
     run.add_argument("--seed", type=int, default=0, help="random seed (UPEN's RRT); default: 0")
     run.add_argument(
@@ -78,7 +84,7 @@ def predictor_options(args: argparse.Namespace) -> dict:
 
 def run_command(args: argparse.Namespace) -> int:
     from mapex.episode import run_episode
-    from mapex.results import run_name, write_results
+    from mapex.results import describe_end, run_name, write_results
 
     if args.steps < 1:
         raise ConfigError(f"--steps must be at least 1 (got {args.steps})")
@@ -104,13 +110,10 @@ def run_command(args: argparse.Namespace) -> int:
     out_dir = args.out or DEFAULT_RESULTS_DIR / run_name(result)
     write_results(result, world, out_dir)
     auc = result.curves.auc()
-    ended = (
-        f", no frontier left at step {result.finished_at}" if result.finished_at is not None else ""
-    )
     print(
-        f"{result.method} on {result.world} (start {result.start_index}): coverage AUC "
+        f"{result.method} on {result.world} ({start_label(result.start_spec)}): coverage AUC "
         f"{auc['coverage']:.3f}, IoU AUC {auc['iou']:.3f}, TU AUC {auc['tu']:.3f}, "
-        f"final coverage {result.curves.coverage[-1]:.3f}{ended} -> {out_dir}"
+        f"final coverage {result.curves.coverage[-1]:.3f}, {describe_end(result)} -> {out_dir}"
     )
     return 0
 

@@ -36,9 +36,15 @@ class MotionConfig:
 
 @dataclass(frozen=True)
 class FrontierConfig:
-    """Frontier clustering (SPEC §3): clusters of `max_dropped_cluster_cells` or fewer go."""
+    """Frontier clustering (SPEC §3): clusters of `max_dropped_cluster_cells` or fewer go.
+
+    `small_clusters_last`: before a run ends early, the dropped clusters that touch unknown
+    space across a cell side (a narrow door seen obliquely, not the unseen diagonal cell of
+    a wall corner) are tried too, as a last resort.
+    """
 
     max_dropped_cluster_cells: int = 10
+    small_clusters_last: bool = True
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from mapex.prediction.base import Predictor
 from mapex.recorder import MetricCurves, MetricRecorder
 from mapex.sensor import Scan
 from mapex.simulator import Simulator
-from mapex.worlds import World, start_poses
+from mapex.worlds import StartSpec, World, normalise_start, start_cell
 
 
 class StepSource(Protocol):
@@ -46,13 +46,14 @@ class EpisodeResult:
     world: str
     method: str
     predictor: str | None
-    start_index: int
+    start_index: int | None  # the corner 0-3, None for an explicit start cell
     start: Cell
     seed: int
     steps: int
     curves: MetricCurves
     trajectory: np.ndarray  # int (n + 1, 2): pose after the initial scan, then after each step
-    finished_at: int | None  # step at which no frontier was left (early termination)
+    finished_at: int | None  # step at which the robot gave up (early termination)
+    end_reason: str  # "budget" (T reached), "explored" (no frontier left) or "unreachable"
     stats: ExplorerStats
     final_observed: np.ndarray
     final_prediction: np.ndarray | None  # G's whole-map prediction at the end
@@ -61,34 +62,38 @@ class EpisodeResult:
     degraded_samples: list[int] = field(default_factory=list)  # metric samples without G
     snapshots: dict[int, tuple[np.ndarray, np.ndarray | None]] = field(default_factory=dict)
 
+    @property
+    def start_spec(self) -> StartSpec:
+        """The start as it was asked for: the corner index, or the explicit cell."""
+        return self.start if self.start_index is None else self.start_index
+
 
 def run_episode(
     world: World,
     method_name: str,
     predictor: Predictor | None,
-    start_index: int = 0,
+    start: StartSpec = 0,
     seed: int = 0,
     config: ExplorationConfig | None = None,
     on_step: StepListener | None = None,
     source: StepSource | None = None,
     robot: int = 0,
 ) -> EpisodeResult:
-    """Explore `world` from start `start_index` (0-3) for `config.steps` steps.
+    """Explore `world` from `start` (a corner 0-3 or a cell) for `config.steps` steps.
 
     `source` (default: an in-process `Simulator` with the robot at that start) moves robot
     `robot` and scans; a world process must have placed that robot at the same start.
+    A start the world cannot take raises WorldError.
     """
     config = config or ExplorationConfig()
-    starts = start_poses(world, config.world.start_clearance_cells)
-    if not 0 <= start_index < len(starts):
-        raise ValueError(f"start index {start_index} out of range 0..{len(starts) - 1}")
-    start = starts[start_index]
+    start = normalise_start(start)
+    cell = start_cell(world, start, config.world.start_clearance_cells)
     began = time.perf_counter()
     if source is None:
-        source, robot = Simulator(world, [start], config.sensor, config.motion), 0
+        source, robot = Simulator(world, [cell], config.sensor, config.motion), 0
     method = make_method(method_name, config)
     explorer = Explorer(world.shape, method, predictor, config, seed)
-    recorder = MetricRecorder(world, start, predictor, config.metrics)
+    recorder = MetricRecorder(world, cell, predictor, config.metrics)
     explorer.observe(source.scan(robot))
     trajectory = [explorer.pose.copy()]
     finished_at = None
@@ -111,13 +116,14 @@ def run_episode(
         world=world.name,
         method=method_name,
         predictor=predictor.name if predictor is not None else None,
-        start_index=start_index,
-        start=start,
+        start_index=start if isinstance(start, int) else None,
+        start=cell,
         seed=seed,
         steps=config.steps,
         curves=recorder.curves,
         trajectory=np.asarray(trajectory, dtype=np.int64),
         finished_at=finished_at,
+        end_reason="budget" if finished_at is None else explorer.end_reason,
         stats=explorer.stats,
         final_observed=explorer.observed.copy(),
         final_prediction=recorder.last_prediction,

@@ -14,14 +14,15 @@ two members there is no variance, so the frontiers are scored on the observed ma
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from mapex.config import ExplorationConfig
-from mapex.frontiers import extract_frontiers
+from mapex.frontiers import frontier_clusters
 from mapex.grid import Cell, new_observed_map
 from mapex.methods.base import Method, PlanningContext
+from mapex.methods.goals import Goal
 from mapex.methods.information_gain import ObservedMap
 from mapex.navigation import (
     advance_along_path,
@@ -42,6 +43,7 @@ class ExplorerStats:
     replans: int = 0
     path_repairs: int = 0
     goals: list[tuple[int, int, int]] = field(default_factory=list)  # (t, row, col)
+    approach_goals: int = 0  # goals standing in for an unreachable frontier point
     degraded_steps: list[int] = field(default_factory=list)  # re-plans lacking members
     fallback_steps: list[int] = field(default_factory=list)  # of those, scored on O_t only
 
@@ -67,7 +69,11 @@ class Explorer:
         self.observed = new_observed_map(shape)
         self.pose = np.zeros(2, dtype=np.int64)
         self.goal: np.ndarray | None = None
+        self.goal_frontier: np.ndarray | None = None  # the frontier point the goal serves
+        self.goal_is_approach = False  # reached only by standing on it (SPEC §3)
         self.path: np.ndarray | None = None
+        self.scanned_from = np.zeros(shape, dtype=bool)  # cells the robot has scanned from
+        self.end_reason: str | None = None  # "explored" or "unreachable" once it gives up
         self.prediction: EnsemblePrediction | None = None
         self.frontiers = np.zeros((0, 2), dtype=np.int64)
         self.frontier_scores: np.ndarray | None = None  # the method's, when it scores frontiers
@@ -79,6 +85,7 @@ class Explorer:
         """Integrate a LiDAR scan into O_t; the scan's pose is the robot's pose."""
         integrate_scan(self.observed, scan, self.config.sensor)
         self.pose = np.asarray(scan.pose, dtype=np.int64)
+        self.scanned_from[self.pose[0], self.pose[1]] = True
 
     def next_motion(self, t: int) -> np.ndarray | None:
         """The cells (k, 2) to drive through at step `t`, or None when exploration is over."""
@@ -100,14 +107,15 @@ class Explorer:
     def _goal_done(self) -> bool:
         nav = self.config.navigation
         distance = float(np.hypot(*(self.goal - self.pose)))
-        reached = self.moved_since_goal and distance <= nav.goal_reached_cells
-        if reached or len(self.path) <= 1:
+        near = self.moved_since_goal and distance <= nav.goal_reached_cells
+        if (near and not self.goal_is_approach) or len(self.path) <= 1:
             return True
         period = self.method.replan_every_steps
         if period is not None and self.steps_since_plan >= period:
             return True
         if self.method.drop_goal_without_unknown:
-            return not unknown_within(self.observed, self.goal, nav.goal_unknown_radius_cells)
+            served = self.goal if self.goal_frontier is None else self.goal_frontier
+            return not unknown_within(self.observed, served, nav.goal_unknown_radius_cells)
         return False
 
     def _repair_path(self) -> None:
@@ -122,7 +130,8 @@ class Explorer:
         self.stats.replans += 1
         self.prediction = self.predict() if self.method.uses_prediction else None
         method = self._method_for(t, self.prediction)
-        self.frontiers = extract_frontiers(self.observed, self.config.frontier)
+        clusters = frontier_clusters(self.observed, self.config.frontier)
+        self.frontiers = clusters.points
         cost = cost_map(self.observed, self.config.navigation)
         context = PlanningContext(
             observed=self.observed,
@@ -133,18 +142,34 @@ class Explorer:
             reachable=reachable_mask(cost, self._cell(self.pose)),
             config=self.config,
             rng=self.rng,
+            clusters=clusters,
+            scanned_from=self.scanned_from,
         )
         goal = method.select_goal(context)
+        if goal is None and self.config.frontier.small_clusters_last:
+            small = frontier_clusters(self.observed, self.config.frontier, small=True)
+            if len(small):
+                context = replace(context, frontiers=small.points, clusters=small)
+                self.frontiers = small.points
+                goal = method.select_goal(context)
         self.frontier_scores = method.last_scores
-        if goal is None:
-            return
-        path = plan_path(self.observed, cost, self._cell(self.pose), self._cell(goal))
+        path = None
+        if goal is not None:
+            path = plan_path(self.observed, cost, self._cell(self.pose), self._cell(goal.cell))
         if path is None:
+            self.end_reason = "explored" if len(context.frontiers) == 0 else "unreachable"
             return
-        self.goal, self.path = np.asarray(goal, dtype=np.int64), path
+        self._set_goal(t, goal, path)
+
+    def _set_goal(self, t: int, goal: Goal, path: np.ndarray) -> None:
+        self.goal, self.path = np.asarray(goal.cell, dtype=np.int64), path
+        self.goal_frontier = goal.frontier
+        self.goal_is_approach = goal.approach
+        self.end_reason = None
         self.steps_since_plan = 0
         self.moved_since_goal = False
-        self.stats.goals.append((t, int(goal[0]), int(goal[1])))
+        self.stats.goals.append((t, int(self.goal[0]), int(self.goal[1])))
+        self.stats.approach_goals += int(goal.approach)
 
     def _method_for(self, t: int, prediction: EnsemblePrediction | None) -> Method:
         """The method, or the observed-map fallback when too few members answered."""

@@ -13,6 +13,8 @@ full 0.1 m map costs a few milliseconds.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -20,6 +22,7 @@ from mapex.config import FrontierConfig
 from mapex.grid import FREE, UNKNOWN
 
 _EIGHT_CONNECTED = np.ones((3, 3), dtype=np.uint8)
+_FOUR_CONNECTED = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=np.uint8)
 
 
 def _check_observed(observed: np.ndarray) -> None:
@@ -37,13 +40,37 @@ def frontier_cells(observed: np.ndarray) -> np.ndarray:
     return (observed == FREE) & near_unknown.astype(bool)
 
 
-def extract_frontier_clusters(
-    observed: np.ndarray, config: FrontierConfig | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Frontier points and the sizes of their clusters (SPEC §3).
+@dataclass(frozen=True)
+class FrontierClusters:
+    """The kept frontier clusters of a map (SPEC §3), in the order of their points.
 
-    Returns `(points, sizes)`: `points` int32 (K, 2) of (row, col), sorted by row then
-    column; `sizes` int64 (K,), the number of frontier cells in each point's cluster.
+    points: int32 (K, 2) frontier points (row, col), sorted by row then column;
+    sizes: int64 (K,) frontier cells per cluster; labels: int32 map, the cluster label
+    of every frontier cell (0 elsewhere; dropped clusters keep theirs); point_labels:
+    int32 (K,) the label of each point's cluster.
+    """
+
+    points: np.ndarray
+    sizes: np.ndarray
+    labels: np.ndarray
+    point_labels: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def members(self, index: int) -> np.ndarray:
+        """int64 (n, 2) cells of cluster `index`, in row-major order."""
+        return np.argwhere(self.labels == self.point_labels[index])
+
+
+def frontier_clusters(
+    observed: np.ndarray, config: FrontierConfig | None = None, small: bool = False
+) -> FrontierClusters:
+    """Frontier cells clustered by 8-connectivity, small clusters dropped (SPEC §3).
+
+    `small=True` gives the last-resort tier instead: the dropped clusters with at least one
+    cell whose unknown neighbour is a side neighbour (4-connected), which leaves out the
+    never-seen diagonal cell of a wall corner.
     """
     config = config or FrontierConfig()
     frontier = frontier_cells(observed)
@@ -54,10 +81,40 @@ def extract_frontier_clusters(
     cell_labels = labels.ravel()[flat]
     sizes = np.bincount(cell_labels, minlength=n_labels)
     best = _closest_to_mean(flat, cell_labels, sizes, frontier.shape[1])
-    best = np.sort(best[sizes[cell_labels[best]] > config.max_dropped_cluster_cells])
+    large = sizes[cell_labels[best]] > config.max_dropped_cluster_cells
+    if small:
+        open_cells = np.bincount(
+            cell_labels, weights=_side_open(observed).ravel()[flat], minlength=n_labels
+        )
+        best = np.sort(best[~large & (open_cells[cell_labels[best]] > 0)])
+    else:
+        best = np.sort(best[large])
     rows, cols = np.divmod(flat[best], frontier.shape[1])
-    points = np.stack([rows, cols], axis=1).astype(np.int32)
-    return points, sizes[cell_labels[best]].astype(np.int64)
+    return FrontierClusters(
+        points=np.stack([rows, cols], axis=1).astype(np.int32),
+        sizes=sizes[cell_labels[best]].astype(np.int64),
+        labels=labels,
+        point_labels=cell_labels[best].astype(np.int32),
+    )
+
+
+def _side_open(observed: np.ndarray) -> np.ndarray:
+    """Bool map: cells with an unknown side (4-connected) neighbour."""
+    unknown = (observed == UNKNOWN).view(np.uint8)
+    near = cv2.dilate(unknown, _FOUR_CONNECTED, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return near.astype(bool)
+
+
+def extract_frontier_clusters(
+    observed: np.ndarray, config: FrontierConfig | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frontier points and the sizes of their clusters (SPEC §3).
+
+    Returns `(points, sizes)`: `points` int32 (K, 2) of (row, col), sorted by row then
+    column; `sizes` int64 (K,), the number of frontier cells in each point's cluster.
+    """
+    clusters = frontier_clusters(observed, config)
+    return clusters.points, clusters.sizes
 
 
 def _closest_to_mean(

@@ -24,6 +24,7 @@ from mapex.episode import EpisodeResult
 from mapex.grid import quantise_probability
 from mapex.plotting import plot_episode
 from mapex.worlds.base import World
+from mapex.worlds.starts import StartSpec, start_label
 
 METRICS_FILE = "metrics.json"
 CURVES_FILE = "curves.csv"
@@ -34,8 +35,26 @@ SNAPSHOTS_FILE = "snapshots.npz"
 
 def run_name(result: EpisodeResult) -> str:
     """A file-system-safe name for the run, e.g. `generated_0-mapex-start0-seed0`."""
-    world = result.world.replace(":", "_").replace("/", "_")
-    return f"{world}-{result.method}-start{result.start_index}-seed{result.seed}"
+    return episode_name(result.world, result.method, result.start_spec, result.seed)
+
+
+def episode_name(world: str, method: str, start: StartSpec, seed: int) -> str:
+    """The results-folder name of a run: `<world>-<method>-<start label>-seed<s>`, with the
+    world name made file-system safe (e.g. `50052748-mapex-start-r15c380-seed0`)."""
+    safe_world = world.replace(":", "_").replace("/", "_")
+    return f"{safe_world}-{method}-{start_label(start)}-seed{seed}"
+
+
+END_REASONS = ("budget", "explored", "unreachable")
+
+
+def describe_end(result: EpisodeResult) -> str:
+    """How the run ended, for a summary line: `ran all 1000 steps`, `no frontier left at
+    step 812` or `no frontier reachable at step 37`."""
+    if result.finished_at is None:
+        return f"ran all {result.steps} steps"
+    why = {"explored": "no frontier left", "unreachable": "no frontier reachable"}
+    return f"{why[result.end_reason]} at step {result.finished_at}"
 
 
 def summary(result: EpisodeResult) -> dict:
@@ -50,6 +69,7 @@ def summary(result: EpisodeResult) -> dict:
         "steps": result.steps,
         "finished_at": result.finished_at,
         "early_termination": result.finished_at is not None,
+        "end_reason": result.end_reason,
         "auc": _json_floats(result.curves.auc()),
         "final": {
             "coverage": result.curves.coverage[-1],
@@ -57,6 +77,7 @@ def summary(result: EpisodeResult) -> dict:
             "tu": _json_float(result.curves.tu[-1]),
         },
         "replans": result.stats.replans,
+        "approach_goals": result.stats.approach_goals,
         "path_repairs": result.stats.path_repairs,
         "degraded_steps": result.stats.degraded_steps,
         "fallback_steps": result.stats.fallback_steps,
@@ -77,7 +98,7 @@ def write_results(result: EpisodeResult, world: World, out_dir: Path) -> Path:
     _write_snapshots(result, staging / SNAPSHOTS_FILE)
     plot_episode(
         staging / PICTURE_FILE,
-        f"{result.world} | {result.method} | start {result.start_index} | seed {result.seed}",
+        f"{result.world} | {result.method} | {start_label(result.start_spec)} | seed {result.seed}",
         result.final_observed,
         result.final_prediction,
         world.occupancy,

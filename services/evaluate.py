@@ -1,18 +1,23 @@
 """`python -m services.evaluate`: the paper's experiment, every method x map x start x seed.
 
     python -m services.evaluate --maps DIR [DIR|generated:SEED ...] [--methods ...]
-        [--ablations] [--starts 0,1,2,3] [--steps 1000] [--seeds 0] [--jobs 2]
-        [--out results/evaluation] [--set SECTION.FIELD=VALUE ...] [Zenoh flags]
+        [--ablations] [--starts 0,1,2,3 | --starts-file FILE] [--steps 1000] [--seeds 0]
+        [--jobs 2] [--out results/evaluation] [--set SECTION.FIELD=VALUE ...] [Zenoh flags]
 
 Episodes run in parallel planner processes (`services.planner --world ... --start ...`,
 `--jobs` at a time) that share one predictor pool: the workers spawned here, plus any
 worker on another machine that joins the same Zenoh network (`--connect`, see deploy/), so
 adding workers adds throughput. Each planner writes its episode to a hidden folder, which
 this process, once the planner has exited cleanly, renames to
-`<out>/<world>-<method>-start<i>-seed<s>/`; rerunning the same command skips those, so a
-kill at any moment loses at most the episodes in flight (and a planner orphaned by the kill,
-whose pool is gone, can add nothing). At the end the report
+`<out>/<world>-<method>-start<i>-seed<s>/` (`mapex.results.episode_name`); rerunning the
+same command skips those, so a kill at any moment loses at most the episodes in flight (and
+a planner orphaned by the kill, whose pool is gone, can add nothing). At the end the report
 (`python -m mapex.report <out>`) is written to `<out>/report/`.
+
+Starts are the corners 0-3 of each map's valid space, or the explicit cells a published
+protocol lists: `--starts-file FILE` holds a JSON object {"<map name>": [[row, col], ...]}
+(0.1 m grid) naming every map of `--maps`; those runs are named `...-start-r<row>c<col>-...`.
+Every start is checked before anything runs (one line naming map and cell, exit 2).
 """
 
 from __future__ import annotations
@@ -41,8 +46,9 @@ from mapex.config import (
 )
 from mapex.methods import ABLATIONS, MAIN_COMPARISON, METHODS
 from mapex.prediction.base import MEMBER_NAMES
-from mapex.results import METRICS_FILE, move_into_place
-from mapex.worlds import WorldError, load_world
+from mapex.results import METRICS_FILE, episode_name, move_into_place
+from mapex.worlds import StartSpec, WorldError, load_world
+from mapex.worlds.starts import start_argument, start_cell
 from services.codec import DEFAULT_SERVICES
 from services.keys import ID_MAX_CHARS
 from services.messages import MetricsMessage
@@ -67,13 +73,12 @@ class Episode:
     world_spec: str
     world_name: str
     method: str
-    start: int
+    start: StartSpec
     seed: int
 
     @property
     def name(self) -> str:
-        world = self.world_name.replace(":", "_").replace("/", "_")
-        return f"{world}-{self.method}-start{self.start}-seed{self.seed}"
+        return episode_name(self.world_name, self.method, self.start, self.seed)
 
     @property
     def run_id(self) -> str:
@@ -83,14 +88,59 @@ class Episode:
 
 
 def plan_episodes(
-    world_specs: list[str], methods: list[str], starts: list[int], seeds: list[int]
+    world_specs: list[str],
+    methods: list[str],
+    starts: list[int] | dict[str, list[StartSpec]],
+    seeds: list[int],
+    clearance_cells: int = ExplorationConfig().world.start_clearance_cells,
 ) -> list[Episode]:
-    """Every combination, worlds outermost; loads each world once to check it and name it."""
-    names = {spec: load_world(spec).name for spec in world_specs}
-    return [
-        Episode(spec, names[spec], method, start, seed)
-        for spec, method, start, seed in itertools.product(world_specs, methods, starts, seeds)
-    ]
+    """Every combination, worlds outermost. `starts`: the corners for every map, or each
+    map's own starts by map name (see `read_starts_file`). Loads each world once to name
+    it and to check every start on it (WorldError naming map and cell)."""
+    episodes = []
+    for spec in world_specs:
+        world = load_world(spec)
+        mine = starts if isinstance(starts, list) else _starts_of(starts, world.name)
+        for start in mine:
+            start_cell(world, start, clearance_cells)
+        episodes += [
+            Episode(spec, world.name, method, start, seed)
+            for method, start, seed in itertools.product(methods, mine, seeds)
+        ]
+    return episodes
+
+
+def _starts_of(starts: dict[str, list[StartSpec]], world_name: str) -> list[StartSpec]:
+    if world_name not in starts:
+        raise WorldError(f"the starts file names no starts for map '{world_name}'")
+    return starts[world_name]
+
+
+def read_starts_file(path: Path) -> dict[str, list[StartSpec]]:
+    """{map name: [(row, col), ...]} from a JSON object of [[row, col], ...] lists; a
+    one-line ValueError for anything else."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ValueError(f"starts file {path}: {error}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"starts file {path}: expected a JSON object of map name -> starts")
+    starts = {}
+    for name, cells in data.items():
+        if not (isinstance(cells, list) and cells and all(_is_cell(c) for c in cells)):
+            raise ValueError(
+                f"starts file {path}: map '{name}' needs a non-empty list of [row, col] cells"
+            )
+        starts[name] = [(int(c[0]), int(c[1])) for c in cells]
+    return starts
+
+
+def _is_cell(value) -> bool:
+    return (
+        isinstance(value, list)
+        and len(value) == 2
+        and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in value)
+    )
 
 
 def finished(episode: Episode, out_dir: Path) -> bool:
@@ -128,7 +178,8 @@ def planner_spec(
     episode: Episode, args: argparse.Namespace, out_dir: Path, flags: list[str]
 ) -> ProcessSpec:
     planner_args = [
-        "--run", episode.run_id, "--world", episode.world_spec, "--start", str(episode.start),
+        "--run", episode.run_id, "--world", episode.world_spec,
+        "--start", start_argument(episode.start),
         "--method", episode.method, "--seed", str(episode.seed), "--steps", str(args.steps),
         "--out", str(planner_folder(episode, out_dir)), "--no-progress",
     ]  # fmt: skip
@@ -180,9 +231,11 @@ def run_episodes(
 
 def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) -> int:
     began = time.monotonic()
-    apply_overrides(ExplorationConfig(), args.overrides)
+    exploration = apply_overrides(ExplorationConfig(), args.overrides)
     methods = list(args.methods) + (list(ABLATIONS) if args.ablations else [])
-    episodes = plan_episodes(args.maps, methods, args.starts, args.seeds)
+    starts = args.starts if args.starts_file is None else read_starts_file(args.starts_file)
+    clearance = exploration.world.start_clearance_cells
+    episodes = plan_episodes(args.maps, methods, starts, args.seeds, clearance)
     args.out.mkdir(parents=True, exist_ok=True)
     if remove_staging(args.out):
         log.info("removed half-written runs of an interrupted evaluation")
@@ -261,7 +314,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--ablations", action="store_true", help="add the ablations " + ",".join(ABLATIONS)
     )
-    parser.add_argument("--starts", type=_ints, default=[0, 1, 2, 3], help="default: 0,1,2,3")
+    parser.add_argument(
+        "--starts", type=_ints, default=[0, 1, 2, 3], help="corners 0-3 (default: 0,1,2,3)"
+    )
+    parser.add_argument(
+        "--starts-file",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help='explicit starts instead of corners: JSON {"<map name>": [[row, col], ...]}',
+    )
     parser.add_argument("--seeds", type=_ints, default=[0], help="comma-separated (default: 0)")
     parser.add_argument("--steps", type=int, default=1000, help="time budget T (default 1000)")
     parser.add_argument("--jobs", type=int, default=2, help="episodes at once (default 2)")

@@ -11,10 +11,11 @@ the re-plan scores frontiers on the observed map, and the record lists those ste
 (DESIGN.md, Reliability). After each step it publishes the observed map, the predictions
 (main, mean, variance), frontiers with scores, goal, path, metrics and status on
 `mapex/@v1/<run>/<robot>/...` (`services.publishing`), and at the end writes the same
-results folder as `python -m mapex run`. With `--world SPEC --start I` the planner simulates
+results folder as `python -m mapex run`. With `--world SPEC --start S` the planner simulates
 the world itself (no world process; batch evaluation runs episodes this way) and still asks
-the predictor pool. Bad flags: one line, exit 2; the world gone or
-refusing a step: one line, exit 1.
+the predictor pool. A start S is a corner 0-3 or a cell ROW,COL; against a world process,
+`--start` names the start the world placed the robot at (checked; the run is named by it).
+Bad flags or starts: one line, exit 2; the world gone or refusing a step: one line, exit 1.
 """
 
 from __future__ import annotations
@@ -40,8 +41,9 @@ from mapex.config import (
 from mapex.episode import EpisodeResult, run_episode
 from mapex.methods import METHODS
 from mapex.prediction.base import MEMBER_NAMES
-from mapex.results import run_name, write_results
-from mapex.worlds import World, WorldError, load_world, start_poses
+from mapex.results import describe_end, run_name, write_results
+from mapex.worlds import StartSpec, World, WorldError, load_world, start_label
+from mapex.worlds.starts import start_cell, start_spec_of, start_type
 from services.codec import DEFAULT_SERVICES
 from services.ensemble_client import ZenohEnsemble
 from services.keys import ID_MAX_CHARS, alive_planner_key, is_valid_id, robot_id
@@ -70,10 +72,10 @@ class PlannerError(RuntimeError):
 
 @dataclass(frozen=True)
 class LocalWorld:
-    """Simulate the world in the planner: the world to load and the start pose (0-3)."""
+    """Simulate the world in the planner: the world to load and the start (corner or cell)."""
 
     spec: str
-    start_index: int
+    start: StartSpec
 
 
 def explore(
@@ -86,15 +88,17 @@ def explore(
     services: ServicesConfig = DEFAULT_SERVICES,
     progress: Progress | None = None,
     local: LocalWorld | None = None,
+    start: StartSpec | None = None,
 ) -> tuple[EpisodeResult, World]:
     """Run robot `robot`'s episode of `run` with the predictor processes, and the world
-    process (or the `local` world simulated here)."""
+    process (or the `local` world simulated here). `start`, with a world process: the start
+    it must have placed the robot at (default: whichever it did)."""
     exploration = exploration or ExplorationConfig()
     if local is None:
         source = ZenohWorld(session, run, services)
-        world, start_index = _remote_start(source, run, robot, exploration)
+        world, start = _remote_start(source, run, robot, exploration, start)
     else:
-        source, world, start_index = None, load_world(local.spec), local.start_index
+        source, world, start = None, load_world(local.spec), local.start
     publisher = RunPublisher(session, run, robot_id(robot), services)
     token = session.liveliness().declare_token(alive_planner_key(run))
     try:
@@ -112,7 +116,7 @@ def explore(
                     progress(t)
 
             result = run_episode(
-                world, method, ensemble, start_index, seed, exploration, on_step,
+                world, method, ensemble, start, seed, exploration, on_step,
                 source=source, robot=robot,
             )  # fmt: skip
         publisher.finished(result, _summary_line(result))
@@ -126,31 +130,37 @@ def explore(
 
 
 def _remote_start(
-    source: ZenohWorld, run: str, robot: int, exploration: ExplorationConfig
-) -> tuple[World, int]:
-    """The world process's world and the start index (0-3) of robot `robot` in it."""
+    source: ZenohWorld,
+    run: str,
+    robot: int,
+    exploration: ExplorationConfig,
+    expected: StartSpec | None,
+) -> tuple[World, StartSpec]:
+    """The world process's world and the start of robot `robot` in it: `expected` when the
+    world placed the robot there, else the corner (or cell) it did place it at."""
     info, world = source.fetch()
     if not 0 <= robot < len(info.starts):
         raise PlannerError(f"run {run} has {len(info.starts)} robots, there is no robot {robot}")
-    return world, _start_index(world, info.starts[robot], exploration)
-
-
-def _start_index(world: World, start, exploration: ExplorationConfig) -> int:
-    """Which of the world's start poses (0-3) the world placed this robot at."""
-    starts = start_poses(world, exploration.world.start_clearance_cells)
-    cell = (int(start[0]), int(start[1]))
-    if cell not in starts:
-        raise PlannerError(f"the world placed the robot at {cell}, not at a start pose {starts}")
-    return starts.index(cell)
+    clearance = exploration.world.start_clearance_cells
+    placed = (int(info.starts[robot][0]), int(info.starts[robot][1]))
+    if expected is None:
+        return world, start_spec_of(world, placed, clearance)
+    wanted = start_cell(world, expected, clearance)
+    if wanted != placed:
+        raise PlannerError(
+            f"the world placed robot {robot_id(robot)} at {placed}, not at its start {wanted}"
+        )
+    return world, expected
 
 
 def _summary_line(result: EpisodeResult) -> str:
     auc = result.curves.auc()
     degraded = len(result.stats.degraded_steps)
     return (
-        f"{result.method} on {result.world} (start {result.start_index}): coverage AUC "
+        f"{result.method} on {result.world} ({start_label(result.start_spec)}): coverage AUC "
         f"{auc['coverage']:.3f}, IoU AUC {auc['iou']:.3f}, TU AUC {auc['tu']:.3f}, "
-        f"final coverage {result.curves.coverage[-1]:.3f}, degraded re-plans {degraded}"
+        f"final coverage {result.curves.coverage[-1]:.3f}, {describe_end(result)}, "
+        f"degraded re-plans {degraded}"
     )
 
 
@@ -165,12 +175,13 @@ def main(
     services: ServicesConfig = DEFAULT_SERVICES,
     progress: Progress | None = None,
     local: LocalWorld | None = None,
+    start: StartSpec | None = None,
 ) -> tuple[EpisodeResult, Path]:
     """Open a session, run the episode, write its results folder; return (result, folder)."""
     session = open_session(config)
     try:
         result, world = explore(
-            session, run, robot, method, seed, exploration, services, progress, local
+            session, run, robot, method, seed, exploration, services, progress, local, start
         )
     finally:
         session.close()
@@ -200,7 +211,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="simulate this world here instead of asking a world process: 'default', "
         "'generated:SEED', 'generated-open:SEED' or a KTH map directory (needs --start)",
     )
-    parser.add_argument("--start", type=int, choices=range(4), default=None, help="with --world")
+    parser.add_argument(
+        "--start",
+        type=start_type,
+        default=None,
+        metavar="CORNER|ROW,COL",
+        help="start: a corner 0-3 or a cell ROW,COL; with --world where to start, else where "
+        "the world process must have placed the robot",
+    )
     add_zenoh_arguments(parser)
     return parser
 
@@ -213,8 +231,8 @@ def run_cli(argv: list[str] | None = None) -> int:
         parser.error(f"--run {args.run!r} must match [a-z0-9_-]{{1,{ID_MAX_CHARS}}}")
     if args.steps < 1 or args.robot < 0:
         parser.error("--steps must be at least 1 and --robot non-negative")
-    if (args.world is None) != (args.start is None):
-        parser.error("--world and --start go together")
+    if args.world is not None and args.start is None:
+        parser.error("--world needs --start")
     local = None if args.world is None else LocalWorld(args.world, args.start)
     configure_logging(f"planner[{args.run}/{robot_id(args.robot)}]")
     try:
@@ -227,7 +245,7 @@ def run_cli(argv: list[str] | None = None) -> int:
     try:
         result, out_dir = main(
             config, args.run, args.robot, args.method, args.seed, args.out, exploration,
-            progress=lambda t: bar.update(t - bar.n), local=local,
+            progress=lambda t: bar.update(t - bar.n), local=local, start=args.start,
         )  # fmt: skip
     except WorldError as error:
         log.error("%s", error)

@@ -8,11 +8,12 @@ folder as `python -m mapex run` (results/<world>-<method>-start<i>-seed<s>).
 
 Every child's log lines are forwarded with its name; a predictor worker that dies is
 restarted (the planner goes on without that member meanwhile and the record notes the
-degraded re-plans); Ctrl-C stops every child within a few seconds. `--runs N` runs N
-episodes at once (starts start, start+1, ... mod 4; seeds seed, seed+1, ...) sharing the
-one predictor pool; `--robots N` puts N robots in each world. With `--connect` (e.g. a
-router on another machine, see deploy/README.md) the hub is not served here and every
-child connects there; `--members none` spawns no worker and uses the workers already there.
+degraded re-plans); Ctrl-C stops every child within a few seconds. `--start` is a corner
+0-3 or a cell ROW,COL. `--runs N` runs N episodes at once (corner starts start, start+1, ...
+mod 4, or the one cell; seeds seed, seed+1, ...) sharing the one predictor pool;
+`--robots N` puts N robots in each world. With `--connect` (e.g. a router on another
+machine, see deploy/README.md) the hub is not served here and every child connects there;
+`--members none` spawns no worker and uses the workers already there.
 """
 
 from __future__ import annotations
@@ -38,7 +39,8 @@ from mapex.config import (
 )
 from mapex.methods import METHODS
 from mapex.prediction.base import MEMBER_NAMES
-from mapex.worlds import DEFAULT_SPEC, WorldError, load_world
+from mapex.worlds import DEFAULT_SPEC, StartSpec, WorldError, load_world
+from mapex.worlds.starts import start_argument, start_cell, start_type
 from services.codec import DEFAULT_SERVICES
 from services.keys import ID_MAX_CHARS, is_valid_id, robot_id
 from services.messages import PoseMessage
@@ -65,21 +67,24 @@ class Run:
     """One episode: a world process and one planner per robot."""
 
     run_id: str
-    starts: tuple[int, ...]
+    starts: tuple[StartSpec, ...]
     seed: int
 
 
 def plan_runs(args: argparse.Namespace) -> list[Run]:
-    """The runs asked for: run k starts its robots at start + k, start + k + 1, ... (mod 4)."""
+    """The runs asked for: run k starts its robots at corners start + k, start + k + 1, ...
+    (mod 4), or with a cell start its one robot at that cell."""
     prefix = args.run_prefix or f"up{os.getpid()}"
     return [
-        Run(
-            f"{prefix}-{k}",
-            tuple((args.start + k + i) % 4 for i in range(args.robots)),
-            args.seed + k,
-        )
+        Run(f"{prefix}-{k}", _run_starts(args.start, k, args.robots), args.seed + k)
         for k in range(args.runs)
     ]
+
+
+def _run_starts(start: StartSpec, run: int, robots: int) -> tuple[StartSpec, ...]:
+    if isinstance(start, int):
+        return tuple((start + run + i) % 4 for i in range(robots))
+    return (start,) * robots
 
 
 def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str]) -> dict:
@@ -87,7 +92,7 @@ def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str
     workers = worker_specs(args.members, args.replicas, args.threads, zenoh_flags, args.precision)
     worlds, planners = [], []
     for run in runs:
-        starts = ",".join(str(s) for s in run.starts)
+        starts = [start_argument(start) for start in run.starts]
         worlds.append(
             ProcessSpec(
                 f"world-{run.run_id}",
@@ -100,7 +105,7 @@ def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str
                     "--robots",
                     str(len(run.starts)),
                     "--starts",
-                    starts,
+                    *starts,
                     *zenoh_flags,
                 ),
             )  # fmt: skip
@@ -109,6 +114,7 @@ def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str
             planner_args = [
                 "--run", run.run_id, "--robot", str(robot), "--method", args.method,
                 "--steps", str(args.steps), "--seed", str(run.seed), "--no-progress",
+                "--start", starts[robot],
             ]  # fmt: skip
             if args.out is not None:
                 planner_args += ["--out", str(args.out / f"{run.run_id}-{robot_id(robot)}")]
@@ -158,8 +164,10 @@ def supervise(
 
 def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) -> int:
     """Spawn, supervise and stop everything; the exit code of the run."""
-    load_world(args.world)  # a bad world fails here in one line, before any process starts
-    apply_overrides(ExplorationConfig(), args.overrides)
+    # A bad world, start or override fails here in one line, before any process starts.
+    world = load_world(args.world)
+    exploration = apply_overrides(ExplorationConfig(), args.overrides)
+    start_cell(world, args.start, exploration.world.start_clearance_cells)
     runs = plan_runs(args)
     own_config, zenoh_flags = hub_session_config(args, services)
     specs = child_specs(args, runs, zenoh_flags)
@@ -190,7 +198,14 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: %(default)s)")  # fmt: skip
     parser.add_argument("--method", default="mapex", choices=sorted(METHODS))
     parser.add_argument("--steps", type=int, default=1000, help="time budget T (default 1000)")
-    parser.add_argument("--start", type=int, default=0, choices=range(4), help="first start pose")
+    parser.add_argument(
+        "--start",
+        type=start_type,
+        default=0,
+        metavar="CORNER|ROW,COL",
+        help="start pose: a corner 0-3 (the first run's; default 0) or a cell ROW,COL of the "
+        "0.1 m grid",
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of the first run (default 0)")
     parser.add_argument("--robots", type=int, default=1, help="robots per world (default 1)")
     parser.add_argument("--runs", type=int, default=1, help="episodes run at once (default 1)")
@@ -219,6 +234,8 @@ def run_cli(argv: list[str] | None = None) -> int:
     for flag in ("steps", "robots", "runs", "replicas", "threads"):
         if getattr(args, flag) < 1:
             parser.error(f"--{flag} must be at least 1")
+    if not isinstance(args.start, int) and args.robots > 1:
+        parser.error("a cell --start places one robot: use corner starts with --robots")
     if args.run_prefix is not None and not (
         is_valid_id(args.run_prefix) and len(args.run_prefix) <= RUN_PREFIX_MAX_CHARS
     ):

@@ -1,10 +1,10 @@
 """The world simulator: owns the ground truth and the robots, answers step queries with scans.
 
     python -m services.world --run RUN_ID [--world default|generated:SEED|KTH_DIR]
-        [--robots 1] [--starts 0[,1,...]] [--mode ...] [--connect ...] [--listen ...]
+        [--robots 1] [--starts 0 [1|ROW,COL ...]] [--mode ...] [--connect ...] [--listen ...]
 
-Robot i of the run is `r<i>` on the wire and starts at start pose `--starts[i]` (an index
-into `mapex.worlds.start_poses`, 0-3: the corners of the valid space). The process declares,
+Robot i of the run is `r<i>` on the wire and starts at `--starts[i]`: a corner 0-3 of the
+valid space (`mapex.worlds.start_poses`) or an explicit cell ROW,COL. The process declares,
 for each robot, a queryable on `mapex/@v1/<run>/<robot>/step` that answers a StepRequest with
 the ScanReply taken after the motion (or an ErrorReply saying why it refused), and publishes
 after each step the robot's PoseMessage on `pose` and the ScanReply on `scan`. WorldInfo and
@@ -31,7 +31,8 @@ import zenoh
 
 from mapex.config import ExplorationConfig, ServicesConfig
 from mapex.simulator import MotionError, Simulator
-from mapex.worlds import DEFAULT_SPEC, World, WorldError, load_world, start_poses
+from mapex.worlds import DEFAULT_SPEC, StartSpec, World, WorldError, load_world
+from mapex.worlds.starts import start_cell, start_type
 from services.codec import DEFAULT_SERVICES, Payload, ProtocolError
 from services.keys import (
     ID_MAX_CHARS,
@@ -68,13 +69,13 @@ StepListener = Callable[[int, int, ScanReply], None]
 
 
 class StartError(ValueError):
-    """A start index that names no start pose of the world; the message is one line."""
+    """A start list the world cannot serve (no robot, a start it cannot take); one line."""
 
 
 class WorldServer:
     """Turns step payloads into scans for the robots of one world; knows nothing of Zenoh.
 
-    Robot i starts at `start_poses(world)[start_indices[i]]`. `answer_step` never raises on
+    Robot i starts at `starts[i]` (a corner 0-3 or a cell). `answer_step` never raises on
     bad input; it serialises steps, so serving threads of several robots may call it at once.
     `on_step` (settable) hears of every fresh step, e.g. to publish it.
     """
@@ -82,18 +83,18 @@ class WorldServer:
     def __init__(
         self,
         world: World,
-        start_indices: Sequence[int],
+        starts: Sequence[StartSpec],
         config: ExplorationConfig = DEFAULT_EXPLORATION,
         on_step: StepListener | None = None,
     ) -> None:
-        if not start_indices:
+        if not starts:
             raise StartError("a world needs at least one robot")
-        candidates = start_poses(world, config.world.start_clearance_cells)
-        for index in start_indices:
-            if not 0 <= index < len(candidates):
-                raise StartError(f"start {index} is not one of 0-{len(candidates) - 1}")
+        clearance = config.world.start_clearance_cells
+        try:
+            self.starts = [start_cell(world, start, clearance) for start in starts]
+        except WorldError as error:
+            raise StartError(str(error)) from None
         self.world = world
-        self.starts = [candidates[index] for index in start_indices]
         self.simulator = Simulator(world, self.starts, config.sensor, config.motion)
         self.on_step = on_step
         self.served = 0  # fresh steps served, all robots together
@@ -235,17 +236,17 @@ def main(
     config: zenoh.Config,
     world: World,
     run: str,
-    start_indices: Sequence[int],
+    starts: Sequence[StartSpec],
     stop: threading.Event | None = None,
     exploration: ExplorationConfig = DEFAULT_EXPLORATION,
     services: ServicesConfig = DEFAULT_SERVICES,
 ) -> int:
-    """Serve `world` for `run` with robots at `start_indices` until `stop` is set.
+    """Serve `world` for `run` with robots at `starts` (corners or cells) until `stop` is set.
 
     Returns the steps served. Raises StartError or WorldError (bad starts, no start pose) before
     any network set-up, and ZenohConfigError when the session is refused.
     """
-    server = WorldServer(world, start_indices, exploration)
+    server = WorldServer(world, starts, exploration)
     session = open_session(config)
     try:
         return serve(session, server, run, stop or threading.Event(), services)
@@ -268,9 +269,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--robots", type=int, default=1, help="number of robots (default: 1)")
     parser.add_argument(
         "--starts",
-        type=_start_list,
+        type=start_type,
+        nargs="+",
         default=None,
-        help="comma-separated start index (0-3) of each robot (default: 0,1,... per robot)",
+        metavar="CORNER|ROW,COL",
+        help="each robot's start: a corner 0-3 or a cell ROW,COL (default: 0 1 ... per robot)",
     )
     add_zenoh_arguments(parser)
     return parser
@@ -295,15 +298,9 @@ def run_cli(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _start_list(text: str) -> list[int]:
-    """argparse type of --starts: non-negative integers separated by commas."""
-    items = text.split(",")
-    if not all(item.strip().isascii() and item.strip().isdigit() for item in items):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of start indices")
-    return [int(item) for item in items]
-
-
-def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace, starts: list[int]):
+def _check_flags(
+    parser: argparse.ArgumentParser, args: argparse.Namespace, starts: list[StartSpec]
+) -> None:
     """argparse-style one-line errors (exit 2) for flag values argparse cannot check itself."""
     if not is_valid_id(args.run) or args.run in RESERVED_RUN_IDS:
         parser.error(

@@ -7,6 +7,7 @@ from mapex.grid import FREE, OCCUPIED
 from mapex.prediction import make_predictor
 from mapex.worlds import generate_floor_plan
 from mapex.worlds.base import World
+from mapex.worlds.starts import eligible_start_cells
 
 
 @pytest.fixture(scope="module")
@@ -49,10 +50,24 @@ def test_small_room_ends_early_and_holds_values():
     world = World("room", occupancy, ~occupancy)
     result = run_episode(world, "nearest", None, 0, 0, ExplorationConfig(steps=300))
     assert result.finished_at is not None and result.finished_at < 50
+    assert result.end_reason == "explored"
     assert result.curves.steps == list(range(0, 301, 50))
     assert result.curves.coverage[-1] == pytest.approx(1.0)
     assert len(set(result.curves.coverage[1:])) == 1  # held from the end state on
     assert len(result.trajectory) == result.finished_at + 1
+
+
+def test_a_run_that_uses_its_budget_ends_for_that_reason(nearest_run):
+    _, result = nearest_run
+    assert result.finished_at is None and result.end_reason == "budget"
+
+
+def test_an_explicit_start_cell_is_where_the_robot_starts():
+    world = generate_floor_plan(3)
+    cell = tuple(int(v) for v in np.argwhere(eligible_start_cells(world, 3))[500])
+    result = run_episode(world, "nearest", None, cell, 0, ExplorationConfig(steps=20))
+    assert result.start == cell and result.start_index is None and result.start_spec == cell
+    assert tuple(result.trajectory[0]) == cell
 
 
 def test_prediction_method_needs_a_predictor():

@@ -44,7 +44,22 @@ def test_goal_is_dropped_when_no_unknown_cell_remains_near_it():
     explorer.observed[explorer.observed == UNKNOWN] = OCCUPIED  # all else seen: solid rock
     explorer.observed[10:21, 61:75] = FREE  # the space behind the goal, closed by walls
     assert explorer.next_motion(1) is None  # no frontier left: exploration is over
-    assert explorer.stats.replans == 2
+    assert explorer.stats.replans == 2 and explorer.end_reason == "explored"
+
+
+@pytest.mark.parametrize("approach", [True, False])
+def test_an_approach_goal_is_kept_until_the_robot_stands_on_it(approach):
+    explorer = explorer_in_corridor()
+    explorer.pose = np.array([15, 45])
+    explorer.goal = np.array([15, 50])
+    explorer.goal_frontier = np.array([15, 60]) if approach else explorer.goal
+    explorer.goal_is_approach = approach
+    explorer.path = np.array([[15, c] for c in range(45, 51)])
+    explorer.moved_since_goal = True  # 0.5 m from the goal: near enough for a frontier point
+    moved = explorer.next_motion(3)
+    assert explorer.stats.replans == (0 if approach else 1)
+    if approach:
+        np.testing.assert_array_equal(moved[-1], [15, 48])
 
 
 def test_a_new_wall_on_the_path_makes_the_planner_repair_it():

@@ -7,7 +7,12 @@ import pytest
 from scipy import ndimage
 
 from mapex.config import FrontierConfig
-from mapex.frontiers import extract_frontier_clusters, extract_frontiers, frontier_cells
+from mapex.frontiers import (
+    extract_frontier_clusters,
+    extract_frontiers,
+    frontier_cells,
+    frontier_clusters,
+)
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
 
 
@@ -156,3 +161,21 @@ def test_drop_size_comes_from_the_config() -> None:
 def test_bad_input_is_rejected(bad: object) -> None:
     with pytest.raises(ValueError, match="2-D uint8"):
         extract_frontiers(bad)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(("n_cells", "last_resort"), [(4, True), (10, True), (11, False)])
+def test_dropped_clusters_open_on_a_side_are_the_last_resort_tier(n_cells, last_resort) -> None:
+    clusters = frontier_clusters(_strip(n_cells), small=True)
+    assert len(clusters) == int(last_resort)
+    if last_resort:
+        assert clusters.sizes.tolist() == [n_cells]
+        assert len(clusters.members(0)) == n_cells
+
+
+def test_the_unseen_diagonal_cell_of_a_wall_corner_is_no_last_resort() -> None:
+    observed = _walled((8, 8))
+    observed[1:7, 1:7] = FREE
+    observed[0, 0] = UNKNOWN  # the corner cell no ray reaches: diagonal to free (1, 1) only
+    assert frontier_cells(observed)[1, 1]
+    assert len(frontier_clusters(observed, small=True)) == 0
+    assert len(frontier_clusters(observed)) == 0

@@ -70,8 +70,8 @@ def test_method_picks_the_expected_side(name):
     assert len(context.frontiers) == 2
     goal = make_method(name, config).select_goal(context)
     assert goal is not None
-    assert context.observed[goal[0], goal[1]] == FREE
-    side = "left" if goal[1] < ROBOT[1] else "right"
+    assert context.observed[goal.cell[0], goal.cell[1]] == FREE
+    side = "left" if goal.cell[1] < ROBOT[1] else "right"
     assert side == EXPECTED_SIDE[name]
 
 
@@ -93,8 +93,8 @@ def test_seeded_episode_is_deterministic(name):
     world = generate_floor_plan(5)
     predictor = make_predictor("classical")
     config = ExplorationConfig(steps=120)
-    first = run_episode(world, name, predictor, start_index=1, seed=7, config=config)
-    second = run_episode(world, name, predictor, start_index=1, seed=7, config=config)
+    first = run_episode(world, name, predictor, start=1, seed=7, config=config)
+    second = run_episode(world, name, predictor, start=1, seed=7, config=config)
     np.testing.assert_array_equal(first.trajectory, second.trajectory)
     np.testing.assert_array_equal(first.final_observed, second.final_observed)
     for name_ in ("steps", "coverage", "iou", "tu"):  # NaN-aware: TU is NaN between samples

@@ -43,6 +43,7 @@ def write_run(
     degraded=None,
     snapshots=True,
     prediction=True,
+    end_reason=None,
 ):
     """A finished run folder whose curves are constant at the given AUCs (so curve means and
     metrics.json agree); snapshots at 100 and 200 of a small map."""
@@ -58,6 +59,7 @@ def write_run(
         "steps": steps,
         "finished_at": 150 if early else None,
         "early_termination": early,
+        "end_reason": end_reason or ("explored" if early else "budget"),
         "auc": {"coverage": cov, "iou": iou, "tu": tu},
         "final": {"coverage": cov, "iou": iou, "tu": tu},
         "replans": 3,
@@ -91,7 +93,10 @@ def results(tmp_path):
     write_run(root, "generated:2", "mapex", 0, cov=0.7, iou=0.3, tu=0.5)
     write_run(root, "generated:1", "nearest", 0, cov=0.5, iou=0.4, tu=0.5, prediction=False)
     write_run(root, "generated:1", "nearest", 1, cov=0.4, iou=0.4, tu=0.3, early=True)
-    write_run(root, "generated:2", "nearest", 0, cov=0.6, iou=0.4, tu=0.4, degraded=[])
+    write_run(
+        root, "generated:2", "nearest", 0, cov=0.6, iou=0.4, tu=0.4, degraded=[], early=True,
+        end_reason="unreachable",
+    )  # fmt: skip
     write_run(root, "generated:1", "upen", 1, cov=0.7, iou=0.5, tu=0.0)
     return root
 
@@ -107,7 +112,8 @@ def test_auc_table_means_and_standard_errors(results):
     assert mapex.auc["iou"].mean == pytest.approx(0.5)
     assert mapex.auc["iou"].se == pytest.approx(0.2 / math.sqrt(3))
     nearest = table.row("nearest")
-    assert (nearest.runs, nearest.early_terminations, nearest.degraded_runs) == (3, 1, 0)
+    assert (nearest.runs, nearest.early_terminations, nearest.degraded_runs) == (3, 2, 0)
+    assert (nearest.explored_ends, nearest.unreachable_ends) == (1, 1)
     assert nearest.auc["coverage"].mean == pytest.approx(0.5)
     assert nearest.auc["tu"].se == pytest.approx(0.1 / math.sqrt(3))
     upen = table.row("upen")
@@ -190,10 +196,10 @@ def test_snapshot_runs_share_world_and_start(tmp_path):
     write_run(tmp_path, "b", "upen", 3, snapshots=False)
     runs = load_runs(tmp_path)
     chosen = choose_snapshot_runs(runs, ReportConfig().method_order)
-    assert [(r.method, r.world, r.start_index, r.seed) for r in chosen] == [
-        ("nearest", "b", 2, 0),
-        ("upen", "b", 2, 0),
-        ("mapex", "b", 2, 0),
+    assert [(r.method, r.world, r.start, r.seed) for r in chosen] == [
+        ("nearest", "b", "start2", 0),
+        ("upen", "b", "start2", 0),
+        ("mapex", "b", "start2", 0),
     ]
     pick = next(r for r in runs if r.world == "a")
     picked = choose_snapshot_runs(runs, ReportConfig().method_order, pick)
@@ -225,7 +231,9 @@ def test_write_report_files_and_numbers(results, tmp_path):
         "generated_1-nearest-start1"
     )  # upen has start 1 only
     markdown = files.markdown.read_text()
-    assert "| mapex | 3 | 0 | 1 | 0.700 ± 0.058 |" in markdown
+    assert "| mapex | 3 | 0 (0 / 0) | 1 | 0.700 ± 0.058 |" in markdown
+    assert "| nearest | 3 | 2 (1 / 1) | 0 |" in markdown
+    assert data["methods"]["nearest"]["early_ends_by_reason"] == {"explored": 1, "unreachable": 1}
     assert "| nearest | +40.0 % | +25.0 % | +25.0 % | +30.0 % |" in markdown
     assert "| generated:1 | 2 | 1 | 2 | 5 |" in markdown
     assert markdown.index("| nearest |") < markdown.index("| upen |") < markdown.index("| mapex")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -19,6 +20,7 @@ from services.evaluate import (
     plan_episodes,
     planner_folder,
     publish,
+    read_starts_file,
     remove_staging,
 )
 
@@ -84,6 +86,42 @@ def test_episodes_cover_every_combination_with_run_folder_names():
     assert (
         Episode("x", "50037764_PLAN1", "mapex", 2, 0).run_id == "50037764_plan1-mapex-start2-seed0"
     )
+
+
+def test_a_starts_file_gives_each_map_its_own_cells(tmp_path):
+    path = tmp_path / "starts.json"
+    path.write_text(json.dumps({"generated:0": [[20, 30], [25, 40]], "other": [[1, 1]]}))
+    episodes = plan_episodes(["generated:0"], ["nearest"], read_starts_file(path), [0])
+    assert [e.start for e in episodes] == [(20, 30), (25, 40)]
+    assert episodes[0].name == "generated_0-nearest-start-r20c30-seed0"
+
+
+def test_an_evaluation_runs_the_cells_of_a_starts_file(tmp_path):
+    (tmp_path / "starts.json").write_text(json.dumps({"generated:0": [[20, 30]]}))
+    out = tmp_path / "out"
+    command = [
+        sys.executable, "-m", "services.evaluate", "--maps", "generated:0", "--methods",
+        "nearest", "--steps", "30", "--starts-file", str(tmp_path / "starts.json"),
+        "--out", str(out), "--no-progress", "--listen", f"tcp/127.0.0.1:{free_loopback_port()}",
+    ]  # fmt: skip
+    completed = subprocess.run(command, cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
+    assert completed.returncode == 0, completed.stderr
+    records = run_records(out)
+    assert list(records) == ["generated_0-nearest-start-r20c30-seed0"]
+    record = records["generated_0-nearest-start-r20c30-seed0"]
+    assert record["start"] == [20, 30] and record["start_index"] is None
+    assert record["end_reason"] in ("budget", "explored", "unreachable")
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [("[]", "a JSON object"), ("{", "Expecting"), ('{"m": []}', "non-empty list"),
+     ('{"m": [[1, -2]]}', "[row, col]"), ('{"m": [[1, true]]}', "[row, col]")],
+)  # fmt: skip
+def test_a_malformed_starts_file_is_refused(tmp_path, text, message):
+    (tmp_path / "s.json").write_text(text)
+    with pytest.raises(ValueError, match=re.escape(message)):
+        read_starts_file(tmp_path / "s.json")
 
 
 def test_only_complete_folders_count_and_staging_is_removed(tmp_path):
@@ -152,9 +190,17 @@ def _started_pids(log_path) -> list[str]:
         (["--maps", "generated:0", "--methods", "nearest,bogus"], "unknown method"),
         (["--maps", "generated:0", "--jobs", "0"], "--jobs must be at least 1"),
         (["--maps", "generated:0", "--starts", "7"], "start poses 0-3"),
+        (["--maps", "generated:0", "--starts-file", "{file}"], "map 'generated:0' needs a"),
+        (["--maps", "generated:1", "--starts-file", "{walls}"], "no starts for map 'generated:1'"),
+        (["--maps", "generated:0", "--starts-file", "{missing}"], "No such file"),
+        (["--maps", "generated:0", "--starts-file", "{walls}"], "start cell (0, 0) is on a wall"),
     ],
 )
 def test_bad_arguments_fail_in_one_line(args, message, tmp_path):
+    (tmp_path / "bad.json").write_text('{"generated:0": [[1, 2, 3]]}')
+    (tmp_path / "walls.json").write_text('{"generated:0": [[0, 0]]}')
+    names = {"file": "bad.json", "missing": "none.json", "walls": "walls.json"}
+    args = [a.format(**{k: tmp_path / v for k, v in names.items()}) for a in args]
     completed = subprocess.run(
         [sys.executable, "-m", "services.evaluate", *args, "--out", str(tmp_path / "out")],
         cwd=REPO_ROOT, capture_output=True, text=True, timeout=120,

@@ -33,6 +33,7 @@ from mapex.episode import run_episode
 from mapex.prediction.learned import LearnedEnsemble
 from mapex.results import write_results
 from mapex.worlds import load_world
+from mapex.worlds.starts import eligible_start_cells
 from services.codec import DEFAULT_SERVICES, SCHEMA_VERSION
 from services.keys import (
     ROBOT_TOPICS,
@@ -49,13 +50,14 @@ from services.zenoh_config import open_session, zenoh_config
 WORLD = "generated:0"
 
 
-def in_process_run(method: str, steps: int, tmp_path):
+def in_process_run(method: str, steps: int, tmp_path, start=0):
     """The same episode in one process, with one torch thread like a worker, written out."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         world = load_world(WORLD)
-        result = run_episode(world, method, LearnedEnsemble(), 0, 0, ExplorationConfig(steps=steps))
+        config = ExplorationConfig(steps=steps)
+        result = run_episode(world, method, LearnedEnsemble(), start, 0, config)
     finally:
         torch.set_num_threads(threads)
     return read_run(write_results(result, world, tmp_path / "in_process"))
@@ -88,9 +90,18 @@ def watch_exit_code(watch: subprocess.Popen, timeout_s: float) -> int | None:
         return None
 
 
+def middle_start_cell() -> tuple[int, int]:
+    """An eligible start cell of WORLD in the middle of the list, not one of its corners."""
+    cells = np.argwhere(eligible_start_cells(load_world(WORLD), 3))
+    return tuple(int(v) for v in cells[len(cells) // 2])
+
+
 def test_distributed_run_equals_in_process_run_and_a_viewer_sees_its_maps(tmp_path):
-    steps = 200
-    up, endpoint = start_up(tmp_path, "same", "--method", "mapex", "--steps", str(steps))
+    steps, start = 200, middle_start_cell()
+    up, endpoint = start_up(
+        tmp_path, "same", "--method", "mapex", "--steps", str(steps),
+        "--start", f"{start[0]},{start[1]}",
+    )  # fmt: skip
     watch = None
     try:
         watch = spawn_watch(tmp_path, endpoint, "same-0")
@@ -102,8 +113,9 @@ def test_distributed_run_equals_in_process_run_and_a_viewer_sees_its_maps(tmp_pa
             watch.kill()
     metrics, trajectory, curves = read_run(tmp_path / "runs" / "same-0-r0")
     expected_metrics, expected_trajectory, expected_curves = in_process_run(
-        "mapex", steps, tmp_path
+        "mapex", steps, tmp_path, start
     )
+    assert metrics["start_index"] is None and tuple(metrics["start"]) == start
     np.testing.assert_array_equal(trajectory, expected_trajectory)
     assert curves == expected_curves
     assert metrics["auc"] == expected_metrics["auc"] and metrics["replans"] > 1
@@ -191,6 +203,9 @@ def test_services_joined_only_through_a_router_run_an_episode(tmp_path):
         (["--members", "g,g9"], "unknown member"),
         (["--run-prefix", "Bad Id"], "--run-prefix"),
         (["--set", "sensor.nope=1"], "error"),
+        (["--start", "4"], "corners are 0-3"),
+        (["--start", "0,0"], "world 'generated:0': start cell (0, 0) is on a wall"),
+        (["--start", "20,20", "--robots", "2"], "a cell --start places one robot"),
     ],
 )
 def test_bad_flags_fail_in_one_line(args, message):

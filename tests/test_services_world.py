@@ -61,10 +61,10 @@ class WorldProcesses(ServiceProcesses):
     """World processes spawned against one hub."""
 
     def start(self, run: str, starts: tuple[int, ...]):
-        robots, start_list = str(len(starts)), ",".join(map(str, starts))
+        robots, start_list = str(len(starts)), [str(s) for s in starts]
         return self.spawn(
             run, "services.world", "--world", WORLD_SPEC, "--run", run,
-            "--robots", robots, "--starts", start_list,
+            "--robots", robots, "--starts", *start_list,
         )  # fmt: skip
 
     def wait_alive(self, session, run: str) -> None:
@@ -230,7 +230,8 @@ def test_sigint_stops_the_world_cleanly(hub, worlds):
     [
         (["--world", "generated:x"], "bad generated seed 'x'"),
         (["--world", "{missing}"], "no such map directory"),
-        (["--starts", "7"], "start 7 is not one of 0-3"),
+        (["--starts", "7"], "corners are 0-3"),
+        (["--starts", "0,1"], "start cell (0, 1) has less than 3 cells of clearance"),
         (["--robots", "2", "--starts", "0"], "names 1 starts for 2 robots"),
         (["--run", "predict"], "--run 'predict' must match"),
     ],
@@ -303,7 +304,14 @@ def test_world_server_knows_its_robots_starts_and_world(world):
     np.testing.assert_array_equal(server.ground_truth().occupancy, world.occupancy)
 
 
-@pytest.mark.parametrize("starts, match", [([4], "start 4 is not one of 0-3"), ([], "one robot")])
+@pytest.mark.parametrize(
+    "starts, match",
+    [
+        ([4], "start 4 is not a corner 0-3"),
+        ([(0, 0)], r"start cell \(0, 0\) is on a wall"),
+        ([], "one robot"),
+    ],
+)
 def test_world_server_refuses_bad_starts(world, starts, match):
     with pytest.raises(StartError, match=match):
         WorldServer(world, starts, SMALL)

@@ -10,7 +10,14 @@ from scipy.spatial import cKDTree
 
 from mapex.config import WorldConfig
 from mapex.worlds import World, WorldError, generate_floor_plan, load_kth_map, start_poses
-from mapex.worlds.starts import eligible_start_cells
+from mapex.worlds.starts import (
+    eligible_start_cells,
+    parse_start,
+    start_argument,
+    start_cell,
+    start_label,
+    start_spec_of,
+)
 
 CLEARANCE = WorldConfig().start_clearance_cells
 DEV_MAPS = ["50015847", "50015848", "50037764_PLAN1", "50052748"]
@@ -91,3 +98,50 @@ def test_dev_map_starts(kth_dev_dir: Path, map_id: str) -> None:
 @pytest.mark.parametrize("seed", [0, 3, 8, 21])
 def test_generated_world_starts(seed: int) -> None:
     assert_good_starts(generate_floor_plan(seed), CLEARANCE)
+
+
+@pytest.mark.parametrize(
+    ("text", "start", "argument", "label"),
+    [("2", 2, "2", "start2"), ("15,380", (15, 380), "15,380", "start-r15c380"),
+     (" 7 , 9 ", (7, 9), "7,9", "start-r7c9")],
+)  # fmt: skip
+def test_a_start_is_a_corner_or_a_cell(text, start, argument, label) -> None:
+    assert parse_start(text) == start
+    assert start_argument(start) == argument and parse_start(argument) == start
+    assert start_label(start) == label
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [("4", "corners are 0-3"), ("-1", "expected a corner"), ("1,2,3", "expected a corner"),
+     ("a,b", "expected a corner"), ("", "expected a corner")],
+)  # fmt: skip
+def test_a_bad_start_text_is_refused_in_one_line(text, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        parse_start(text)
+
+
+def test_an_explicit_cell_is_checked_against_the_world() -> None:
+    walls = np.zeros((20, 30), dtype=bool)
+    walls[[0, -1], :] = True
+    walls[:, [0, -1]] = True
+    valid = ~walls
+    valid[:, 20:] = False  # a free strip outside the valid space
+    world = World("room", walls, valid)
+    assert start_cell(world, (10, 10), CLEARANCE) == (10, 10)
+    assert start_cell(world, 0, CLEARANCE) == start_poses(world, CLEARANCE)[0]
+    for cell, message in [
+        ((20, 5), r"start cell \(20, 5\) is outside the map \(20 x 30 cells\)"),
+        ((0, 5), r"start cell \(0, 5\) is on a wall"),
+        ((10, 25), r"start cell \(10, 25\) is outside the valid space"),
+        ((2, 10), r"start cell \(2, 10\) has less than 3 cells of clearance"),
+    ]:
+        with pytest.raises(WorldError, match=r"world 'room': " + message):
+            start_cell(world, cell, CLEARANCE)
+
+
+def test_a_cell_is_named_by_its_corner_when_it_is_one() -> None:
+    world = room_world()
+    corners = start_poses(world, CLEARANCE)
+    assert start_spec_of(world, corners[2], CLEARANCE) == 2
+    assert start_spec_of(world, (10, 10), CLEARANCE) == (10, 10)

@@ -13,7 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapex.config import ExplorationConfig
+from mapex.frontiers import FrontierClusters
 from mapex.grid import FREE, UNKNOWN
+from mapex.methods.goals import Goal, cluster_goal
 from mapex.navigation import plan_path
 from mapex.prediction.base import EnsemblePrediction
 
@@ -25,7 +27,9 @@ class PlanningContext:
     observed: uint8 observed map O_t; pose: robot cell (row, col);
     frontiers: int (K, 2) frontier points; prediction: the ensemble (None for
     methods that use none); cost: float32 planning cost map (inf = blocked);
-    reachable: bool map of cells the robot can drive to.
+    reachable: bool map of cells the robot can drive to; clusters: the frontier
+    clusters the points stand for (None: each point is a cluster of its own);
+    scanned_from: bool map of the cells the robot has scanned from (None: its pose only).
     """
 
     observed: np.ndarray
@@ -36,6 +40,8 @@ class PlanningContext:
     reachable: np.ndarray
     config: ExplorationConfig
     rng: np.random.Generator
+    clusters: FrontierClusters | None = None
+    scanned_from: np.ndarray | None = None
 
     def frontier_distances(self) -> np.ndarray:
         """Euclidean distance in cells from the robot to each frontier, at least 1."""
@@ -65,9 +71,22 @@ class PlanningContext:
         pose = (int(self.pose[0]), int(self.pose[1]))
         return plan_path(self.observed, self.cost, pose, (row, col)) is not None
 
+    def cluster_members(self, index: int) -> np.ndarray:
+        """int64 (n, 2) frontier cells of the cluster of frontier point `index`."""
+        if self.clusters is None:
+            return self.frontiers[index : index + 1].astype(np.int64)
+        return self.clusters.members(index)
+
+    def was_scanned_from(self, cell: np.ndarray) -> bool:
+        """Whether the robot has already scanned from `cell` (its pose included)."""
+        row, col = int(cell[0]), int(cell[1])
+        if (row, col) == (int(self.pose[0]), int(self.pose[1])):
+            return True
+        return self.scanned_from is not None and bool(self.scanned_from[row, col])
+
 
 class Method(ABC):
-    """A goal selector. `select_goal` returns a reachable known-free cell, or None when done."""
+    """A goal selector. `select_goal` returns a reachable goal, or None when done."""
 
     name: str = ""
     uses_prediction: bool = False
@@ -79,24 +98,30 @@ class Method(ABC):
         self.last_scores: np.ndarray | None = None  # per frontier of the last choice, if scored
 
     @abstractmethod
-    def select_goal(self, context: PlanningContext) -> np.ndarray | None:
-        """The next goal cell, or None when there is nothing left to explore."""
+    def select_goal(self, context: PlanningContext) -> Goal | None:
+        """The next goal, or None when there is nothing left to explore."""
 
 
 class FrontierScorer(Method):
-    """A method that scores frontier points; the best reachable one becomes the goal."""
+    """A method that scores frontier points; the best-scored cluster with a goal wins.
+
+    Clusters are tried in score order, those the method cannot score (not finite, e.g. an
+    unreachable point's path cost) last, so a run ends only when no cluster has a goal.
+    """
 
     @abstractmethod
     def score(self, context: PlanningContext) -> np.ndarray:
         """float64 (K,) score per frontier, higher is better."""
 
-    def select_goal(self, context: PlanningContext) -> np.ndarray | None:
+    def select_goal(self, context: PlanningContext) -> Goal | None:
         self.last_scores = None
         if len(context.frontiers) == 0:
             return None
         scores = self.score(context)
         self.last_scores = scores
-        for index in np.argsort(-scores, kind="stable"):
-            if np.isfinite(scores[index]) and context.can_reach(context.frontiers[index]):
-                return context.frontiers[index]
+        ranked = np.where(np.isfinite(scores), -scores, np.inf)
+        for index in np.argsort(ranked, kind="stable"):
+            goal = cluster_goal(context, int(index))
+            if goal is not None:
+                return goal
         return None

@@ -4,7 +4,8 @@ An RRT is grown from the robot over cells the mean prediction calls free; the
 tree path with the largest sum of V_t along it wins and the robot heads for its
 end. Since the robot may only drive through known-free space, the goal is the
 reachable known-free cell nearest to that end; the planner re-plans every
-`replan_every_steps` steps.
+`replan_every_steps` steps. When that cell is one the robot has already scanned from, the
+nearest frontier's goal is taken instead (a second scan there would show nothing new).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import numpy as np
 
 from mapex.grid import FREE, UNKNOWN
 from mapex.methods.base import Method, PlanningContext
+from mapex.methods.goals import Goal
 from mapex.methods.nearest import NearestFrontier
 
 
@@ -28,14 +30,14 @@ class Upen(Method):
         self.replan_every_steps = config.upen.replan_every_steps
         self._fallback = NearestFrontier(config)
 
-    def select_goal(self, context: PlanningContext) -> np.ndarray | None:
+    def select_goal(self, context: PlanningContext) -> Goal | None:
         if len(context.frontiers) == 0:
             return None
         end = best_rrt_endpoint(context)
         goal = nearest_reachable_cell(context, end)
-        if goal is None or np.array_equal(goal, context.pose):
+        if goal is None or context.was_scanned_from(goal):  # a second scan there shows nothing
             return self._fallback.select_goal(context)
-        return goal
+        return Goal(goal)
 
 
 def predicted_free(context: PlanningContext) -> np.ndarray:

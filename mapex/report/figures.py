@@ -112,20 +112,20 @@ def choose_snapshot_runs(
     with_snapshots = [r for r in runs if has_snapshots(r)]
     methods = order_methods((r.method for r in with_snapshots), order)
     if pick is not None:
-        place = (pick.world, pick.start_index)
+        place = (pick.world, pick.start)
     else:
-        places = sorted({(r.world, r.start_index) for r in with_snapshots})
+        places = sorted({(r.world, r.start) for r in with_snapshots})
         if not places:
             return []
         coverage = {
-            p: {r.method for r in with_snapshots if (r.world, r.start_index) == p} for p in places
+            p: {r.method for r in with_snapshots if (r.world, r.start) == p} for p in places
         }
         place = max(places, key=lambda p: len(coverage[p]))  # max keeps the first of ties
         if len(coverage[place]) < len(methods):
-            warn(f"no world/start has snapshots of every method; using {place[0]} start {place[1]}")
+            warn(f"no world/start has snapshots of every method; using {place[0]} {place[1]}")
     chosen = []
     for method in methods:
-        mine = [r for r in with_snapshots if (r.world, r.start_index, r.method) == (*place, method)]
+        mine = [r for r in with_snapshots if (r.world, r.start, r.method) == (*place, method)]
         if mine:
             chosen.append(min(mine, key=lambda r: (r.seed, r.name)))
     return chosen
@@ -157,7 +157,7 @@ def plot_snapshots(
     else:
         fig = _grid_layout(chosen, steps, rows_cells / cols_cells, config)
     first = chosen[0][0]
-    fig.suptitle(f"{first.world} | start {first.start_index}", fontsize=10)
+    fig.suptitle(f"{first.world} | {first.start}", fontsize=10)
     fig.tight_layout(rect=(0.0, 0.0, 1.0, top))
     fig.savefig(path, dpi=config.dpi)
     plt.close(fig)

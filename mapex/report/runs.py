@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from mapex.results import CURVES_FILE, METRICS_FILE, SNAPSHOTS_FILE
+from mapex.worlds.starts import start_label
 
 METRICS = ("coverage", "iou", "tu")
 METRIC_LABELS = {"coverage": "Coverage", "iou": "IoU", "tu": "TU"}
@@ -59,8 +60,12 @@ class RunRecord:
         return str(self.metrics["world"])
 
     @property
-    def start_index(self) -> int:
-        return int(self.metrics["start_index"])
+    def start(self) -> str:
+        """The run's start as in run names: `start2` (a corner) or `start-r15c380` (a cell)."""
+        corner = self.metrics["start_index"]
+        if corner is not None:
+            return start_label(int(corner))
+        return start_label(tuple(int(v) for v in self.metrics["start"]))
 
     @property
     def seed(self) -> int:
@@ -69,6 +74,11 @@ class RunRecord:
     @property
     def early_termination(self) -> bool:
         return bool(self.metrics.get("early_termination", False))
+
+    @property
+    def end_reason(self) -> str | None:
+        """`budget`, `explored` or `unreachable`; None for records older than the field."""
+        return self.metrics.get("end_reason")
 
     @property
     def degraded(self) -> bool:

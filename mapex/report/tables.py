@@ -35,6 +35,8 @@ class MethodRow:
     method: str
     runs: int
     early_terminations: int
+    explored_ends: int  # early ends with no frontier left
+    unreachable_ends: int  # early ends with frontiers left, none reachable
     degraded_runs: int
     auc: dict[str, Stat]
 
@@ -79,6 +81,8 @@ def method_rows(runs: Sequence[RunRecord], order: Sequence[str]) -> tuple[Method
                 method=method,
                 runs=len(mine),
                 early_terminations=sum(r.early_termination for r in mine),
+                explored_ends=sum(r.end_reason == "explored" for r in mine),
+                unreachable_ends=sum(r.end_reason == "unreachable" for r in mine),
                 degraded_runs=sum(r.degraded for r in mine),
                 auc={m: mean_se([r.auc(m) for r in mine]) for m in METRICS},
             )
@@ -147,6 +151,11 @@ def _fmt_stat(stat: Stat) -> str:
     return f"{stat.mean:.3f} ± {se}"
 
 
+def _fmt_early_ends(row: MethodRow) -> str:
+    """`3 (2 / 1)`; runs recorded before end reasons existed count in the total only."""
+    return f"{row.early_terminations} ({row.explored_ends} / {row.unreachable_ends})"
+
+
 def _fmt_percent(value: float) -> str:
     return f"{value:+.1f} %" if math.isfinite(value) else "–"
 
@@ -158,11 +167,11 @@ def _markdown_table(header: Sequence[str], rows: Iterable[Sequence[object]]) -> 
 
 
 def auc_markdown(rows: Sequence[MethodRow]) -> str:
-    """The AUC table: mean ± standard error over runs."""
-    header = ["method", "runs", "early term.", "degraded runs"]
+    """The AUC table: mean ± standard error over runs, and the early ends by reason."""
+    header = ["method", "runs", "early end (explored / unreachable)", "degraded runs"]
     header += [f"{METRIC_LABELS[m]} AUC" for m in METRICS]
     body = [
-        [r.method, r.runs, r.early_terminations, r.degraded_runs]
+        [r.method, r.runs, _fmt_early_ends(r), r.degraded_runs]
         + [_fmt_stat(r.auc[m]) for m in METRICS]
         for r in rows
     ]
@@ -225,6 +234,10 @@ def _rows_json(rows: Sequence[MethodRow]) -> dict:
         r.method: {
             "runs": r.runs,
             "early_terminations": r.early_terminations,
+            "early_ends_by_reason": {
+                "explored": r.explored_ends,
+                "unreachable": r.unreachable_ends,
+            },
             "degraded_runs": r.degraded_runs,
             "auc": {
                 m: {"mean": _json_number(s.mean), "se": _json_number(s.se), "n": s.n}

@@ -17,13 +17,23 @@ from mapex.worlds.base import (
     generated_prefix,
 )
 from mapex.worlds.kth import load_kth_map
-from mapex.worlds.starts import start_poses
+from mapex.worlds.starts import (
+    StartSpec,
+    normalise_start,
+    parse_start,
+    start_argument,
+    start_cell,
+    start_label,
+    start_poses,
+    start_spec_of,
+)
 
 DEFAULT_WORLD = "generated:0"
 DEFAULT_SPEC = "default"
 
 __all__ = [
     "DEFAULT_WORLD",
+    "StartSpec",
     "World",
     "WorldError",
     "generate_floor_plan",
@@ -31,7 +41,13 @@ __all__ = [
     "is_procedural",
     "load_kth_map",
     "load_world",
+    "normalise_start",
+    "parse_start",
+    "start_argument",
+    "start_cell",
+    "start_label",
     "start_poses",
+    "start_spec_of",
 ]
 
 
