@@ -231,7 +231,7 @@ def test_sigint_stops_the_world_cleanly(hub, worlds):
         (["--world", "generated:x"], "bad generated seed 'x'"),
         (["--world", "{missing}"], "no such map directory"),
         (["--starts", "7"], "corners are 0-3"),
-        (["--starts", "0,1"], "start cell (0, 1) has less than 3 cells of clearance"),
+        (["--starts", "0,1"], "start cell (0, 1) is on a wall"),
         (["--robots", "2", "--starts", "0"], "names 1 starts for 2 robots"),
         (["--run", "predict"], "--run 'predict' must match"),
     ],
