@@ -1,6 +1,6 @@
 """Every tunable number of the system, in one typed place.
 
-Defaults follow ../shared/SPEC.md (units: cells of 0.1 m, steps of the episode).
+Defaults follow docs/algorithms.md (units: cells of 0.1 m, steps of the episode).
 Any field can be overridden from the command line as `section.field=value`
 (see `apply_overrides`), e.g. `--set visibility.stop_rule=threshold`.
 """
@@ -21,7 +21,7 @@ PRECISIONS: tuple[str, ...] = typing.get_args(Precision)
 
 @dataclass(frozen=True)
 class SensorConfig:
-    """The 2D LiDAR of SPEC §2."""
+    """The 2D LiDAR of docs/algorithms.md#sensor."""
 
     n_rays: int = 2500
     range_cells: int = 200  # 20 m
@@ -29,14 +29,15 @@ class SensorConfig:
 
 @dataclass(frozen=True)
 class MotionConfig:
-    """Robot motion per timestep (SPEC §2)."""
+    """Robot motion per timestep (docs/algorithms.md#sensor)."""
 
     cells_per_step: int = 3
 
 
 @dataclass(frozen=True)
 class FrontierConfig:
-    """Frontier clustering (SPEC §3): clusters of `max_dropped_cluster_cells` or fewer go.
+    """Frontier clustering (docs/algorithms.md#frontiers): clusters of
+    `max_dropped_cluster_cells` or fewer go.
 
     `small_clusters_last`: before a run ends early, the dropped clusters that touch unknown
     space across a cell side (a narrow door seen obliquely, not the unseen diagonal cell of
@@ -49,7 +50,7 @@ class FrontierConfig:
 
 @dataclass(frozen=True)
 class NavigationConfig:
-    """Planning cost map, A* and the goal-keeping rule (SPEC §2-3)."""
+    """Planning cost map, A* and the goal-keeping rule (docs/algorithms.md#navigation)."""
 
     wall_inflation_cells: int = 1  # 3x3 inflation of known walls
     wall_clearance_cells: float = 5.0  # distance-transform cost fades out at this distance
@@ -60,7 +61,7 @@ class NavigationConfig:
 
 @dataclass(frozen=True)
 class VisibilityConfig:
-    """Frontier visibility raycasts of SPEC §5."""
+    """Frontier visibility raycasts of docs/algorithms.md#methods."""
 
     n_rays: int = 250
     range_cells: int = 200
@@ -106,7 +107,7 @@ MemberSplit = Literal["thirds", "by_source"]
 
 @dataclass(frozen=True)
 class PredictorTrainingConfig:
-    """Data and schedule of `python -m mapex.prediction.train` (SPEC §4)."""
+    """Data and schedule of `python -m mapex.prediction.train` (docs/algorithms.md#prediction)."""
 
     procedural_worlds: int = 48  # generated:<first_procedural_seed + i>
     first_procedural_seed: int = 1000
@@ -158,7 +159,8 @@ class PredictorTrainingConfig:
 
 @dataclass(frozen=True)
 class PredictorEvaluationConfig:
-    """`python -m mapex.prediction.evaluate` (SPEC §4): when snapshots are taken, and what
+    """`python -m mapex.prediction.evaluate` (docs/algorithms.md#prediction): when snapshots are
+    taken, and what
     counts as near the known map."""
 
     snapshot_times: tuple[int, ...] = (100, 300, 600)
@@ -168,7 +170,7 @@ class PredictorEvaluationConfig:
 
 @dataclass(frozen=True)
 class MetricsConfig:
-    """Metrics of SPEC §6."""
+    """Metrics of docs/algorithms.md#metrics."""
 
     sample_every_steps: int = 50
     tu_every_steps: int = 100
@@ -180,14 +182,15 @@ class MetricsConfig:
 
 @dataclass(frozen=True)
 class WorldConfig:
-    """Start poses (SPEC §1)."""
+    """Start poses (docs/algorithms.md#worlds)."""
 
     start_clearance_cells: int = 3  # 0.3 m
 
 
 @dataclass(frozen=True)
 class ProceduralConfig:
-    """Procedural office floor plans (SPEC §1, mapex.worlds.procedural); sizes in 0.1 m cells.
+    """Procedural office floor plans (docs/algorithms.md#worlds, mapex.worlds.procedural); sizes
+    in 0.1 m cells.
 
     "Depth" is a room's size across its row of rooms, "width" its size along the corridor.
     """
@@ -291,7 +294,7 @@ class ClassicalPredictorConfig:
 
 @dataclass(frozen=True)
 class ServicesConfig:
-    """Wire limits and Zenoh defaults of the distributed simulator (services/, DESIGN.md)."""
+    """Wire limits and Zenoh defaults of the distributed simulator (services/, docs/design.md)."""
 
     max_message_bytes: int = 32 * 2**20  # encoded payload cap, checked before unpacking
     max_decoded_bytes: int = 128 * 2**20  # cap on a message's decompressed array bytes
@@ -305,7 +308,7 @@ class ServicesConfig:
     predict_retries: int = 3  # re-sends of a query that no worker was routed (no reply at all)
     predict_retry_pause_s: float = 0.2  # before the first re-send; doubles for each next one
     liveliness_query_timeout_s: float = 2.0  # planner's start-up discovery of live workers
-    predictor_threads: int = 1  # torch CPU threads of one predictor worker (DESIGN.md)
+    predictor_threads: int = 1  # torch CPU threads of one predictor worker (docs/design.md)
     predictor_drain_s: float = 3.0  # on shutdown, wait this long for the query being computed
     world_drain_s: float = 2.0  # on shutdown, wait this long for the step being answered
     step_timeout_s: float = 10.0  # one step query; a lost reply is retried with the same seq

@@ -1,16 +1,16 @@
-"""The robot brain: mapping, goal keeping and re-planning with one method (SPEC §2-3).
+"""The robot brain: mapping, goal keeping and re-planning with one method
+(docs/algorithms.md#navigation).
 
 The explorer owns the observed map O_t. Each timestep it keeps its goal while
-the goal is still worth going to (SPEC §3), otherwise it re-plans: predicts the
+the goal is still worth going to (docs/algorithms.md#goals), otherwise it re-plans: predicts the
 map (methods that use prediction), extracts frontiers, lets the method pick a
 goal and plans an A* path to it. It then hands back the cells to drive through
 this step. It knows nothing of processes: `services.planner` wraps it.
 
-A distributed ensemble may answer with fewer members than asked (DESIGN.md,
-Reliability). Such a re-plan is *degraded* and listed in the stats; with fewer than
-two members there is no variance, so the frontiers are scored on the observed map
-(the `observed_map` method) for that re-plan.
-"""
+A distributed ensemble may answer with fewer members than asked (docs/design.md#reliability).
+Such a re-plan is *degraded* and listed in the stats; with fewer than two members there is no
+variance, so the frontiers are scored on the observed map (the `observed_map` method) for that
+re-plan."""
 
 from __future__ import annotations
 
@@ -70,7 +70,7 @@ class Explorer:
         self.pose = np.zeros(2, dtype=np.int64)
         self.goal: np.ndarray | None = None
         self.goal_frontier: np.ndarray | None = None  # the frontier point the goal serves
-        self.goal_is_approach = False  # reached only by standing on it (SPEC §3)
+        self.goal_is_approach = False  # reached only by standing on it (docs/algorithms.md#goals)
         self.path: np.ndarray | None = None
         self.scanned_from = np.zeros(shape, dtype=bool)  # cells the robot has scanned from
         self.end_reason: str | None = None  # "explored" or "unreachable" once it gives up

@@ -1,4 +1,4 @@
-"""Frontier extraction (SPEC §3).
+"""Frontier extraction (docs/algorithms.md#frontiers).
 
 A frontier cell is a known-free cell with at least one unknown 8-neighbour (cells
 outside the map do not count as unknown). Frontier cells are clustered by
@@ -42,7 +42,8 @@ def frontier_cells(observed: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class FrontierClusters:
-    """The kept frontier clusters of a map (SPEC §3), in the order of their points.
+    """The kept frontier clusters of a map (docs/algorithms.md#frontiers), in the order of their
+    points.
 
     points: int32 (K, 2) frontier points (row, col), sorted by row then column;
     sizes: int64 (K,) frontier cells per cluster; labels: int32 map, the cluster label
@@ -66,7 +67,8 @@ class FrontierClusters:
 def frontier_clusters(
     observed: np.ndarray, config: FrontierConfig | None = None, small: bool = False
 ) -> FrontierClusters:
-    """Frontier cells clustered by 8-connectivity, small clusters dropped (SPEC §3).
+    """Frontier cells clustered by 8-connectivity, small clusters dropped
+    (docs/algorithms.md#frontiers).
 
     `small=True` gives the last-resort tier instead: the dropped clusters with at least one
     cell whose unknown neighbour is a side neighbour (4-connected), which leaves out the
@@ -108,7 +110,7 @@ def _side_open(observed: np.ndarray) -> np.ndarray:
 def extract_frontier_clusters(
     observed: np.ndarray, config: FrontierConfig | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Frontier points and the sizes of their clusters (SPEC §3).
+    """Frontier points and the sizes of their clusters (docs/algorithms.md#frontiers).
 
     Returns `(points, sizes)`: `points` int32 (K, 2) of (row, col), sorted by row then
     column; `sizes` int64 (K,), the number of frontier cells in each point's cluster.
@@ -138,6 +140,7 @@ def _closest_to_mean(
 
 
 def extract_frontiers(observed: np.ndarray, config: FrontierConfig | None = None) -> np.ndarray:
-    """Frontier points, int32 (K, 2) of (row, col) sorted by row then column (SPEC §3)."""
+    """Frontier points, int32 (K, 2) of (row, col) sorted by row then column
+    (docs/algorithms.md#frontiers)."""
     points, _ = extract_frontier_clusters(observed, config)
     return points

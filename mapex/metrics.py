@@ -1,4 +1,5 @@
-"""Run metrics of SPEC §6: coverage, occupied-class IoU, topological understanding, AUC."""
+"""Run metrics of docs/algorithms.md#metrics: coverage, occupied-class IoU, topological
+understanding, AUC."""
 
 from __future__ import annotations
 
@@ -128,7 +129,7 @@ def _clean_path_flags(parent, wall, goals, start_flat):
 
 
 def curve_auc(values: Sequence[float] | np.ndarray) -> float:
-    """Area under a sampled metric curve: its mean over the samples (SPEC §6 aggregate)."""
+    """Area under a sampled metric curve: its mean over the samples (docs/algorithms.md#metrics)."""
     values = np.asarray(values, dtype=np.float64)
     if values.size == 0:
         raise MetricsError("curve_auc needs at least one sample")

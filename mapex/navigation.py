@@ -1,4 +1,5 @@
-"""Navigation helpers of the explorer (SPEC §2-3): cost map, planning, path following.
+"""Navigation helpers of the explorer (docs/algorithms.md#navigation): cost map, planning, path
+following.
 
 The robot plans only through known-free cells, keeps one cell (3x3) away from known
 walls and pays an extra cost near them (distance transform), so it never enters

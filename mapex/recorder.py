@@ -1,4 +1,5 @@
-"""Samples the metrics of one run (SPEC §6): coverage and IoU every 50 steps, TU every 100.
+"""Samples the metrics of one run (docs/algorithms.md#metrics): coverage and IoU every 50 steps,
+TU every 100.
 
 IoU and TU judge the map the robot would hand over: P_t = known cells of O_t,
 unknown cells from the main predictor G thresholded at 0.5 (with no predictor,
@@ -38,7 +39,7 @@ class MetricCurves:
     tu: list[float] = field(default_factory=list)
 
     def auc(self) -> dict[str, float]:
-        """Mean of each curve over its samples (SPEC §6 aggregate)."""
+        """Mean of each curve over its samples (docs/algorithms.md#metrics)."""
         tu = np.asarray(self.tu, dtype=np.float64)
         return {
             "coverage": float(np.mean(self.coverage)),

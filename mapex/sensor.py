@@ -1,4 +1,4 @@
-"""The noise-free 2D LiDAR of SPEC §2 and its integration into the observed map.
+"""The noise-free 2D LiDAR of docs/algorithms.md#sensor and its integration into the observed map.
 
 A ray walks cells with the shared traversal of `mapex.raycast` from the robot's cell and stops
 at the first wall (included), at the range or at the map border. A `Scan` keeps only what

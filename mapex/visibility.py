@@ -1,4 +1,5 @@
-"""Frontier visibility raycasts of SPEC §5: which cells a viewpoint would see, and their gain.
+"""Frontier visibility raycasts of docs/algorithms.md#methods: which cells a viewpoint would
+see, and their gain.
 
 Every method that raycasts uses this one kernel over an `opacity` map (float32, rows x cols):
 

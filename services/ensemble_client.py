@@ -6,7 +6,7 @@ member, all issued before any reply is awaited, each to the least recently used 
 of that member: replicas share the load and every query is answered by exactly one worker.
 A member whose worker times out, refuses, sends an invalid reply or has no live worker is
 left out, and the result says which members answered: the planner goes on with those
-(DESIGN.md, Reliability) and records the step as degraded.
+(docs/design.md#reliability) and records the step as degraded.
 """
 
 from __future__ import annotations
@@ -190,7 +190,7 @@ class ZenohEnsemble(Predictor):
         or a route was being re-established: Zenoh then ends a query at once with no
         reply, eclipse-zenoh/zenoh#2767) is sent again after a short pause, up to
         `services.predict_retries` times; a timed-out or refused one is not (a hung worker
-        costs one timeout, DESIGN.md).
+        costs one timeout, docs/design.md#reliability).
         """
         return self._finish(self._start(observed, members))
 

@@ -381,10 +381,10 @@ class PathMessage(Message):
 
 @dataclass(frozen=True)
 class MetricsMessage(Message):
-    """Planner -> anyone on `metrics`: SPEC §6 values at step `t`, all in [0, 1].
+    """Planner -> anyone on `metrics`: docs/algorithms.md#metrics values at step `t`, all in [0, 1].
 
     tu is None at steps where TU is not computed; degraded is True when this step's
-    prediction lacked members (DESIGN.md, Reliability).
+    prediction lacked members (docs/design.md#reliability).
     """
 
     TYPE: ClassVar[str] = "metrics"

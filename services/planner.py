@@ -8,7 +8,7 @@ world process as the step source (`services.world_client.ZenohWorld`) and the pr
 workers as the ensemble (`services.ensemble_client.ZenohEnsemble`, every member asked in
 parallel). A member that does not answer in time is left out; with fewer than two members
 the re-plan scores frontiers on the observed map, and the record lists those steps
-(DESIGN.md, Reliability). After each step it publishes the observed map, the predictions
+(docs/design.md#reliability). After each step it publishes the observed map, the predictions
 (main, mean, variance), frontiers with scores, goal, path, metrics and status on
 `mapex/@v1/<run>/<robot>/...` (`services.publishing`), and at the end writes the same
 results folder as `python -m mapex run`. With `--world SPEC --start S` the planner simulates

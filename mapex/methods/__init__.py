@@ -1,4 +1,4 @@
-"""The eight exploration methods of SPEC §5, selectable by name."""
+"""The eight exploration methods of docs/algorithms.md#methods, selectable by name."""
 
 from __future__ import annotations
 

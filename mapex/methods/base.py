@@ -1,4 +1,4 @@
-"""The common interface of every exploration method (SPEC §5).
+"""The common interface of every exploration method (docs/algorithms.md#methods).
 
 All methods share the exploration loop and differ only in how they pick the
 next goal. Most score frontiers (`FrontierScorer`: higher is better, the best
@@ -91,7 +91,9 @@ class Method(ABC):
     name: str = ""
     uses_prediction: bool = False
     replan_every_steps: int | None = None  # re-plan periodically even if the goal is kept
-    drop_goal_without_unknown: bool = True  # SPEC §3 goal rule; UPEN's goals are not frontiers
+    drop_goal_without_unknown: bool = (
+        True  # goal rule, docs/algorithms.md#goals; UPEN's goals are not frontiers
+    )
 
     def __init__(self, config: ExplorationConfig) -> None:
         self.config = config

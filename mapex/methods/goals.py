@@ -1,4 +1,5 @@
-"""Where the robot drives to explore a frontier cluster: the cluster's goal (SPEC §3).
+"""Where the robot drives to explore a frontier cluster: the cluster's goal
+(docs/algorithms.md#goals).
 
 The robot only drives through known-free cells with a cell of clearance, so a cluster's
 frontier point may be out of reach: a door seen at a grazing angle shows only a one-cell

@@ -1,6 +1,6 @@
 """MapEx and its ablations: information gain over a raycast visible set, per unit distance.
 
-SPEC §5: the visible set of a frontier is every cell one of 250 rays (20 m)
+docs/algorithms.md#methods: the visible set of a frontier is every cell one of 250 rays (20 m)
 traverses before it stops, minus cells already known. The methods differ in the
 map the rays walk (what stops them) and in what each visible cell is worth.
 """

@@ -1,4 +1,5 @@
-"""Map predictors: observed map in, ensemble of occupancy-probability maps out (SPEC §4).
+"""Map predictors: observed map in, ensemble of occupancy-probability maps out
+(docs/algorithms.md#prediction).
 
 `PREDICTORS` names every predictor by the "module:Class" that implements it, so
 that choosing one imports only its own dependencies (the learned ensemble pulls

@@ -31,15 +31,13 @@ MEMBER_NAMES = ("g", "g1", "g2", "g3")  # ensemble members by index; member 0 is
 class EnsemblePrediction:
     """Member predictions, float32 (n_members, rows, cols); member 0 is G.
 
-    P_t is G's row; M_t and V_t are the mean and variance over G_1..G_n only, as in
-    the paper (SPEC §4): G, trained on all the data, is not one of the members whose
-    disagreement measures the uncertainty. Only `region` was predicted: outside it
-    every member holds the observed map, so the mean is that map and the variance
-    is zero there. `member_ids` names the member of each row (None: rows 0..n-1 are
-    members 0..n-1). A distributed pool may answer with fewer members than asked
-    (DESIGN.md, Reliability); then `member_ids` says which, and row 0 is G only if G
-    answered.
-    """
+    P_t is G's row; M_t and V_t are the mean and variance over G_1..G_n only, as in the paper
+    (docs/algorithms.md#prediction): G, trained on all the data, is not one of the members whose
+    disagreement measures the uncertainty. Only `region` was predicted: outside it every member
+    holds the observed map, so the mean is that map and the variance is zero there. `member_ids`
+    names the member of each row (None: rows 0..n-1 are members 0..n-1). A distributed pool may
+    answer with fewer members than asked (docs/design.md#reliability); then `member_ids` says
+    which, and row 0 is G only if G answered."""
 
     members: np.ndarray
     region: Region | None = None

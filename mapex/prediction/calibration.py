@@ -1,6 +1,6 @@
 """G's decision threshold: the wall probability from which a cell counts as occupied.
 
-The metrics and the thresholded-map methods read G at p >= 0.5 (SPEC §5, §6). G is
+The metrics and the thresholded-map methods read G at p >= 0.5 (docs/algorithms.md#metrics). G is
 trained with wall-weighted cross-entropy, which fixes its operating point only
 roughly, and for a rare class such as walls the IoU-optimal threshold of a
 probability lies well below 0.5. Calibration measures G's mean occupied-class IoU

@@ -1,4 +1,5 @@
-"""A classical (non-learned) stand-in for the map-prediction ensemble of SPEC §4.
+"""A classical (non-learned) stand-in for the map-prediction ensemble of
+docs/algorithms.md#prediction.
 
 This is plain image inpainting, not a neural network: every member paints the
 observed wall image (known free 0, occupied 1) into the unknown cells with

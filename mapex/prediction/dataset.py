@@ -24,7 +24,8 @@ from mapex.prediction.network import OUTSIDE_MAP
 from mapex.simulator import Simulator
 from mapex.worlds import World, generated_prefix, is_procedural, load_world, start_poses
 
-# Maps that share buildings with the held-back test maps (SPEC §1): never train on them.
+# Maps that share buildings with held-back test maps (docs/algorithms.md#worlds): never
+# train on them.
 VALIDATION_ONLY_MAPS = ("50037764_PLAN1", "50052748")
 
 
@@ -46,7 +47,7 @@ def training_world_specs(config: PredictorTrainingConfig, kth_dirs: list[str]) -
     """World specs to explore: procedural plans, then the allowed KTH training maps."""
     for directory in kth_dirs:
         if any(directory.rstrip("/").endswith(name) for name in VALIDATION_ONLY_MAPS):
-            raise ValueError(f"{directory} is a validation-only map (SPEC §1): never train on it")
+            raise ValueError(f"{directory} is a validation-only map: never train on it")
     first = config.first_procedural_seed
     prefix = generated_prefix(config.free_outside_plans)
     return [f"{prefix}{seed}" for seed in range(first, first + config.procedural_worlds)] + list(

@@ -1,17 +1,15 @@
 """`python -m mapex.prediction.train`: train the LaMa-style ensemble and write its weights.
 
-G is trained on every snapshot; G_1..G_3 each fine-tune it on one source of the data
-(one KTH training map each, then the procedural plans), or on a disjoint third of the
-worlds with `--set member_split=thirds` (SPEC §4). G's weights from before that are
-kept (g-base.pt); after the members, G is polished with a soft IoU added to its loss
-(`polish_main`). Snapshots come from exploring procedural floor plans and the two KTH
-maps allowed for training. Checkpoints are written as training goes, so an interrupted
-run resumes with `--resume`. Once G is polished, its decision threshold is chosen on
-training snapshots
-(`mapex.prediction.calibration`); `--calibrate-only` does that alone for the G already
-in `--out`. The final weights (float16) go to `mapex/prediction/weights/` by default,
-where the package loads them from.
-"""
+G is trained on every snapshot; G_1..G_3 each fine-tune it on one source of the data (one KTH
+training map each, then the procedural plans), or on a disjoint third of the worlds with `--set
+member_split=thirds` (docs/algorithms.md#prediction). G's weights from before that are kept
+(g-base.pt); after the members, G is polished with a soft IoU added to its loss (`polish_main`).
+Snapshots come from exploring procedural floor plans and the two KTH maps allowed for training.
+Checkpoints are written as training goes, so an interrupted run resumes with `--resume`. Once G
+is polished, its decision threshold is chosen on training snapshots
+(`mapex.prediction.calibration`); `--calibrate-only` does that alone for the G already in
+`--out`. The final weights (float16) go to `mapex/prediction/weights/` by default, where the
+package loads them from."""
 
 from __future__ import annotations
 

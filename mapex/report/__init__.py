@@ -4,16 +4,17 @@ Reads the run folders written by mapex.results (hidden `.name` folders are runs 
 being written and are ignored) and produces, in `--out` (default RESULTS_DIR/report):
 
 * report.md / report.json: per method the mean +- standard error over runs of the
-  coverage, IoU and TU AUCs (SPEC §6), pooled and per world; MapEx's relative
+  coverage, IoU and TU AUCs (docs/algorithms.md#metrics), pooled and per world; MapEx's relative
   improvement over every other method in the paper's form (AUC_ref - AUC_other) /
-  AUC_other x 100 % (SPEC §7); the number of runs per world and method.
+  AUC_other x 100 % (docs/algorithms.md#protocol); the number of runs per world and method.
 * curves.png and curves-<world>.png: mean metric curves with standard-error bands.
 * snapshots.png: observed map and G's prediction at the snapshot steps for one run per
   method, all on the same world and start (one row per method; one row per method and map
   kind for wide maps).
 
-The mean of the per-run AUCs is SPEC §6's aggregate (the AUC of the mean curve) when the
-runs share one sample grid, i.e. one time budget T; mixed budgets are flagged in the report.
+The mean of the per-run AUCs is the aggregate of docs/algorithms.md#metrics (the AUC of the mean
+curve) when the runs share one sample grid, i.e. one time budget T; mixed budgets are flagged in
+the report.
 
 Modules: runs (loading run folders), tables (numbers, Markdown and JSON), figures (curves
 and snapshots); this one assembles the report and holds the command line.

@@ -1,10 +1,10 @@
 """The report's numbers and their Markdown / JSON form.
 
-Per method the mean +- standard error over runs of the coverage, IoU and TU AUCs (SPEC §6),
-pooled and per world; MapEx's relative improvement over every other method in the paper's
-form (AUC_ref - AUC_other) / AUC_other x 100 % (SPEC §7); the number of runs per world and
-method; a note when runs have different time budgets (their AUCs are then not comparable).
-"""
+Per method the mean +- standard error over runs of the coverage, IoU and TU AUCs
+(docs/algorithms.md#metrics), pooled and per world; MapEx's relative improvement over every
+other method in the paper's form (AUC_ref - AUC_other) / AUC_other x 100 %
+(docs/algorithms.md#protocol); the number of runs per world and method; a note when runs have
+different time budgets (their AUCs are then not comparable)."""
 
 from __future__ import annotations
 
@@ -99,7 +99,8 @@ def auc_table(runs: Sequence[RunRecord], order: Sequence[str] | None = None) -> 
 
 
 def relative_improvement(reference: float, other: float) -> float:
-    """(reference - other) / other x 100 %: SPEC §7's "reference beats other by k %"."""
+    """(reference - other) / other x 100 %: docs/algorithms.md#protocol: "reference beats other
+    by k %"."""
     if not (math.isfinite(reference) and math.isfinite(other)) or other == 0:
         return math.nan
     return (reference - other) / other * 100.0

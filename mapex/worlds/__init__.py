@@ -1,4 +1,5 @@
-"""Ground-truth worlds (SPEC §1): KTH map directories, procedural floor plans, start poses.
+"""Ground-truth worlds (docs/algorithms.md#worlds): KTH map directories, procedural floor plans,
+start poses.
 
 `load_world` turns a world spec into a World: "generated:<seed>", "generated-open:<seed>"
 (the same plan with free space around the building, as in the KTH maps), "default" (the

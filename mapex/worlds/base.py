@@ -26,7 +26,8 @@ class World:
     """A floor plan at 0.1 m per cell.
 
     occupancy: bool (rows, cols), True = wall.
-    valid_space: bool (rows, cols), True = inside a room of the building (SPEC §1).
+    valid_space: bool (rows, cols), True = inside a room of the building
+    (docs/algorithms.md#worlds).
     """
 
     name: str

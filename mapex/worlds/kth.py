@@ -1,4 +1,5 @@
-"""Load a KTH floor-plan directory (the authors' `kth_test_maps/<id>/` format, SPEC §1).
+"""Load a KTH floor-plan directory (the authors' `kth_test_maps/<id>/` format,
+docs/algorithms.md#worlds).
 
 A directory holds `occ_map.npy` (uint8, 0 = wall, 254 = free, 0.05 m per cell) and
 `valid_space.npy` (uint8 room labels, only `label > 0` matters) of the same 2-D shape.

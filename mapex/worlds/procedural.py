@@ -1,4 +1,4 @@
-"""Seeded office-style floor plans in the KTH world representation (SPEC §1).
+"""Seeded office-style floor plans in the KTH world representation (docs/algorithms.md#worlds).
 
 They are the embedded default world and the predictor's main training data, so they copy
 the structure of real office plans. In layout coordinates (y across, x along the main

@@ -1,4 +1,5 @@
-"""Start poses: one near each corner of the valid space (SPEC §1), or an explicit cell.
+"""Start poses: one near each corner of the valid space (docs/algorithms.md#worlds), or an
+explicit cell.
 
 A start is named either by a corner index 0-3 (the project's protocol) or by a cell
 (row, col) on the 0.1 m grid (the start poses a published protocol lists). On the command
