@@ -22,10 +22,9 @@ import threading
 
 import zenoh
 
+from mapex.exit_codes import EXIT_USAGE
 from services.serving import configure_logging, stop_on_signals, wait_for
 from services.zenoh_config import ZenohConfigError, open_session, zenoh_config
-
-EXIT_USAGE = 2  # bad flags, endpoints or config file
 
 log = logging.getLogger("deploy.router")
 

@@ -27,17 +27,22 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from mapex.config import ConfigError, ExplorationConfig, add_override_argument, apply_overrides
+from mapex.config import (
+    ConfigError,
+    ExplorationConfig,
+    add_override_argument,
+    apply_overrides,
+    argparse_type,
+)
 from mapex.episode import run_episode
+from mapex.exit_codes import EXIT_FAILED, EXIT_USAGE
 from mapex.grid import FREE, OCCUPIED, UNKNOWN, Cell
-from mapex.methods import METHODS, make_method
+from mapex.methods import make_method, parse_method_list
 from mapex.navigation import cost_map, reachable_mask
 from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
 from mapex.worlds import World, WorldError, load_world
 from mapex.worlds.starts import eligible_start_cells
 
-EXIT_FLAGGED = 1
-EXIT_USAGE = 2
 DEFAULT_METHODS = ("nearest", "observed_map")
 
 
@@ -173,7 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--maps", nargs="+", required=True, metavar="MAP",
                         help="KTH map directories and/or generated:SEED worlds")  # fmt: skip
     parser.add_argument("--starts", type=int, default=25, help="start cells per map")
-    parser.add_argument("--methods", default=",".join(DEFAULT_METHODS), help="comma-separated")
+    parser.add_argument("--methods", type=argparse_type(parse_method_list),
+                        default=list(DEFAULT_METHODS), help="comma-separated")  # fmt: skip
     parser.add_argument("--steps", type=int, default=1000, help="time budget T")
     parser.add_argument("--seed", type=int, default=0, help="seed of the start cells")
     parser.add_argument("--max-unknown", type=float, default=0.02,
@@ -189,16 +195,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def plan_jobs(args: argparse.Namespace, config: ExplorationConfig) -> list[tuple]:
     """(world spec, start, method, config, predictor) for every map, start and method."""
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    unknown = [m for m in methods if m not in METHODS]
-    if unknown or not methods:
-        raise ConfigError(f"unknown method {', '.join(unknown) or args.methods!r} "
-                          f"(choose from {', '.join(METHODS)})")  # fmt: skip
     jobs = []
     for spec in args.maps:
         world = load_world(spec)
         starts = spread_starts(world, args.starts, config.world.start_clearance_cells, args.seed)
-        jobs += [(spec, s, m, config, args.predictor) for s in starts for m in methods]
+        jobs += [(spec, s, m, config, args.predictor) for s in starts for m in args.methods]
     return jobs
 
 
@@ -226,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
     flagged = sum(r.flagged for r in rows)
     print(f"\n{len(rows)} runs, {flagged} flagged (ended early with more than "
           f"{args.max_unknown:.0%} of the reachable cells unknown)")  # fmt: skip
-    return EXIT_FLAGGED if flagged else 0
+    return EXIT_FAILED if flagged else 0
 
 
 if __name__ == "__main__":

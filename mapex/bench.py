@@ -22,6 +22,7 @@ import numpy as np
 
 from mapex.config import PRECISIONS, ExplorationConfig
 from mapex.episode import run_episode
+from mapex.exit_codes import EXIT_USAGE
 from mapex.explorer import Explorer
 from mapex.frontiers import extract_frontiers
 from mapex.grid import FREE, new_observed_map
@@ -236,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
         world = load_world(args.world)
     except WorldError as error:
         print(f"mapex.bench: error: {error}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     config = ExplorationConfig(steps=args.steps)
     print(f"map {world.name}: {world.shape[0]} x {world.shape[1]} cells; medians in ms", flush=True)
     bench_scan(world, config, args.repeats)

@@ -14,12 +14,14 @@ from mapex.config import (
     add_override_argument,
     add_precision_argument,
     apply_overrides,
+    argparse_type,
 )
+from mapex.exit_codes import EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
 from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
 from mapex.prediction.weights import WeightsError
 from mapex.worlds import DEFAULT_WORLD, WorldError, load_world, start_label
-from mapex.worlds.starts import start_type
+from mapex.worlds.starts import parse_start
 
 DEFAULT_RESULTS_DIR = Path("results")
 
@@ -58,7 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--steps", type=int, default=1000, help="time budget T; default: %(default)s")
     run.add_argument(
         "--start",
-        type=start_type,
+        type=argparse_type(parse_start),
         default=0,
         metavar="CORNER|ROW,COL",
         help="start pose: a corner 0-3 of the valid space, or an explicit cell ROW,COL of the "
@@ -124,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
         return run_command(args)
     except (WorldError, ConfigError, WeightsError, OSError) as error:
         print(f"mapex: error: {error}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     except KeyboardInterrupt:
         print("mapex: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED

@@ -11,12 +11,14 @@ import argparse
 import dataclasses
 import types
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 StopRule = Literal["accumulate", "threshold"]
 Precision = Literal["float32", "bfloat16"]
 PRECISIONS: tuple[str, ...] = typing.get_args(Precision)
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -420,6 +422,20 @@ def _coerce(raw: str, hint: Any, item: str) -> Any:
         return hint(raw)
     except (TypeError, ValueError):
         raise ConfigError(f"override '{item}': '{raw}' is not a valid {hint.__name__}") from None
+
+
+def argparse_type(parse: Callable[[str], T]) -> Callable[[str], T]:
+    """An argparse `type=` from a parser that raises ValueError with a one-line message, so
+    argparse shows that message (it hides a plain ValueError's)."""
+
+    def checked(text: str) -> T:
+        try:
+            return parse(text)
+        except ValueError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
+
+    checked.__name__ = parse.__name__
+    return checked
 
 
 def add_override_argument(parser: argparse.ArgumentParser) -> None:

@@ -34,11 +34,6 @@ def observed_to_probability(observed: np.ndarray) -> np.ndarray:
     return observed.astype(np.float32) * np.float32(0.5)
 
 
-def metres_to_cells(distance_m: float) -> int:
-    """Round a distance in metres to whole cells."""
-    return int(round(distance_m / RESOLUTION_M))
-
-
 def quantise_probability(probability: np.ndarray) -> np.ndarray:
     """Probabilities in [0, 1] (any float array) -> uint8 round(p * 255).
 

@@ -41,25 +41,22 @@ from mapex.config import (
     ExplorationConfig,
     ServicesConfig,
     add_override_argument,
-    add_precision_argument,
     apply_overrides,
+    argparse_type,
 )
-from mapex.methods import ABLATIONS, MAIN_COMPARISON, METHODS
-from mapex.prediction.base import MEMBER_NAMES
+from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
+from mapex.methods import ABLATIONS, MAIN_COMPARISON, parse_method_list
 from mapex.results import METRICS_FILE, episode_name, move_into_place
 from mapex.worlds import StartSpec, WorldError, load_world
 from mapex.worlds.starts import start_argument, start_cell
 from services.codec import DEFAULT_SERVICES
 from services.keys import ID_MAX_CHARS
 from services.messages import MetricsMessage
-from services.pool import RunProgress, hub_session_config, parse_member_list, worker_specs
+from services.pool import RunProgress, add_pool_arguments, hub_session_config, worker_specs
 from services.serving import configure_logging, stop_on_signals
 from services.supervisor import ProcessSpec, Supervisor
 from services.zenoh_config import HUB_HELP, ZenohConfigError, add_zenoh_arguments, open_session
 
-EXIT_FAILED = 1  # some episodes failed (the others are kept)
-EXIT_USAGE = 2
-EXIT_INTERRUPTED = 130
 DEFAULT_OUT = Path("results/evaluation")
 RUN_LOG_FILE = "evaluations.jsonl"  # one line per invocation: command, runs, wall time
 
@@ -307,7 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--methods",
-        type=_methods,
+        type=argparse_type(parse_method_list),
         default=list(MAIN_COMPARISON),
         help="comma-separated (default: " + ",".join(MAIN_COMPARISON) + ")",
     )
@@ -329,29 +326,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--jobs", type=int, default=2, help="episodes at once (default 2)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="default: %(default)s")
     add_override_argument(parser)
-    parser.add_argument(
-        "--members",
-        type=parse_member_list,
-        default=MEMBER_NAMES,
-        help="members to spawn workers for, or 'none' (default: all)",
-    )
-    parser.add_argument("--replicas", type=int, default=1, help="workers per member (default 1)")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads per worker")
-    add_precision_argument(parser)
+    add_pool_arguments(parser)
     parser.add_argument("--no-report", action="store_true", help="skip the report at the end")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     add_zenoh_arguments(parser, HUB_HELP)
     return parser
-
-
-def _methods(text: str) -> list[str]:
-    names = [item.strip() for item in text.split(",") if item.strip()]
-    unknown = [name for name in names if name not in METHODS]
-    if unknown or not names:
-        raise argparse.ArgumentTypeError(
-            f"unknown method {', '.join(unknown) or text!r} (choose from {', '.join(METHODS)})"
-        )
-    return names
 
 
 def _ints(text: str) -> list[int]:

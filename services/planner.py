@@ -37,13 +37,15 @@ from mapex.config import (
     ServicesConfig,
     add_override_argument,
     apply_overrides,
+    argparse_type,
 )
 from mapex.episode import EpisodeResult, run_episode
+from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
 from mapex.prediction.base import MEMBER_NAMES
 from mapex.results import describe_end, run_name, write_results
 from mapex.worlds import StartSpec, World, WorldError, load_world, start_label
-from mapex.worlds.starts import start_cell, start_spec_of, start_type
+from mapex.worlds.starts import parse_start, start_cell, start_spec_of
 from services.codec import DEFAULT_SERVICES
 from services.ensemble_client import ZenohEnsemble
 from services.keys import ID_MAX_CHARS, alive_planner_key, is_valid_id, robot_id
@@ -57,8 +59,6 @@ from services.zenoh_config import (
     zenoh_config_from_args,
 )
 
-EXIT_FAILED = 1  # the world went away or refused a step
-EXIT_USAGE = 2  # bad flags or Zenoh configuration
 DEFAULT_RESULTS_DIR = Path("results")
 
 log = logging.getLogger("services.planner")
@@ -213,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--start",
-        type=start_type,
+        type=argparse_type(parse_start),
         default=None,
         metavar="CORNER|ROW,COL",
         help="start: a corner 0-3 or a cell ROW,COL; with --world where to start, else where "
@@ -255,7 +255,7 @@ def run_cli(argv: list[str] | None = None) -> int:
         return EXIT_FAILED
     except KeyboardInterrupt:
         log.error("interrupted")
-        return 130
+        return EXIT_INTERRUPTED
     finally:
         bar.close()
     print(f"{_summary_line(result)} -> {out_dir}")

@@ -13,7 +13,7 @@ import threading
 
 import zenoh
 
-from mapex.config import Precision, ServicesConfig
+from mapex.config import Precision, ServicesConfig, add_precision_argument
 from mapex.prediction.base import MEMBER_NAMES
 from services.codec import ProtocolError
 from services.keys import RobotKey, RobotTopic, parse_key, robot_key_pattern
@@ -33,6 +33,20 @@ def parse_member_list(text: str) -> tuple[str, ...]:
     if unknown:
         raise argparse.ArgumentTypeError(f"unknown member(s) {', '.join(unknown)}")
     return members
+
+
+def add_pool_arguments(parser: argparse.ArgumentParser) -> None:
+    """The predictor-pool flags of `services.up` and `services.evaluate`: which members to
+    spawn workers for, how many per member, their torch threads and precision."""
+    parser.add_argument(
+        "--members",
+        type=parse_member_list,
+        default=MEMBER_NAMES,
+        help="members to spawn workers for, comma-separated, or 'none' (default: g,g1,g2,g3)",
+    )
+    parser.add_argument("--replicas", type=int, default=1, help="workers per member (default 1)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads per worker")
+    add_precision_argument(parser)
 
 
 def worker_specs(

@@ -29,6 +29,7 @@ from pathlib import Path
 import zenoh
 
 from mapex.config import Precision, ServicesConfig, add_precision_argument
+from mapex.exit_codes import EXIT_USAGE
 from mapex.prediction.base import Predictor
 from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
 from services.codec import DEFAULT_SERVICES, Payload, ProtocolError
@@ -48,7 +49,6 @@ from services.zenoh_config import (
     zenoh_config_from_args,
 )
 
-EXIT_USAGE = 2  # bad flags, missing weights, unusable Zenoh configuration
 _DEVICE_PATTERN = re.compile(r"cpu|cuda(:\d+)?")
 
 log = logging.getLogger("services.predictor")

@@ -34,17 +34,17 @@ from mapex.config import (
     ExplorationConfig,
     ServicesConfig,
     add_override_argument,
-    add_precision_argument,
     apply_overrides,
+    argparse_type,
 )
+from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
-from mapex.prediction.base import MEMBER_NAMES
 from mapex.worlds import DEFAULT_SPEC, StartSpec, WorldError, load_world
-from mapex.worlds.starts import start_argument, start_cell, start_type
+from mapex.worlds.starts import parse_start, start_argument, start_cell
 from services.codec import DEFAULT_SERVICES
 from services.keys import ID_MAX_CHARS, is_valid_id, robot_id
 from services.messages import PoseMessage
-from services.pool import RunProgress, hub_session_config, parse_member_list, worker_specs
+from services.pool import RunProgress, add_pool_arguments, hub_session_config, worker_specs
 from services.serving import configure_logging, stop_on_signals
 from services.supervisor import ProcessSpec, Supervisor
 from services.zenoh_config import (
@@ -54,9 +54,6 @@ from services.zenoh_config import (
     open_session,
 )
 
-EXIT_FAILED = 1  # a planner failed
-EXIT_USAGE = 2  # bad flags, world or Zenoh configuration
-EXIT_INTERRUPTED = 130
 RUN_PREFIX_MAX_CHARS = ID_MAX_CHARS - 8  # room for the '-<k>' run suffix
 
 log = logging.getLogger("services.up")
@@ -200,7 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--steps", type=int, default=1000, help="time budget T (default 1000)")
     parser.add_argument(
         "--start",
-        type=start_type,
+        type=argparse_type(parse_start),
         default=0,
         metavar="CORNER|ROW,COL",
         help="start pose: a corner 0-3 (the first run's; default 0) or a cell ROW,COL of the "
@@ -209,15 +206,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0, help="seed of the first run (default 0)")
     parser.add_argument("--robots", type=int, default=1, help="robots per world (default 1)")
     parser.add_argument("--runs", type=int, default=1, help="episodes run at once (default 1)")
-    parser.add_argument(
-        "--members",
-        type=parse_member_list,
-        default=MEMBER_NAMES,
-        help="members to spawn workers for, comma-separated, or 'none' (default: g,g1,g2,g3)",
-    )
-    parser.add_argument("--replicas", type=int, default=1, help="workers per member (default 1)")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads per worker")
-    add_precision_argument(parser)
+    add_pool_arguments(parser)
     parser.add_argument(
         "--out", type=Path, default=None, help="results parent folder (default: as mapex run)"
     )

@@ -33,6 +33,7 @@ import numpy as np
 import zenoh
 
 from mapex.config import WatchConfig
+from mapex.exit_codes import EXIT_USAGE
 from services.codec import Payload, ProtocolError
 from services.keys import ID_MAX_CHARS, RESERVED_RUN_IDS, is_valid_id, robot_key
 from services.messages import (
@@ -55,7 +56,6 @@ from services.zenoh_config import (
     zenoh_config_from_args,
 )
 
-EXIT_USAGE = 2  # bad flags, unusable Zenoh configuration
 EXIT_NOT_FINISHED = 1  # --until-finished, but --timeout-s came first
 FINAL_STATES = ("finished", "failed")
 

@@ -29,10 +29,11 @@ from collections.abc import Callable, Sequence
 
 import zenoh
 
-from mapex.config import ExplorationConfig, ServicesConfig
+from mapex.config import ExplorationConfig, ServicesConfig, argparse_type
+from mapex.exit_codes import EXIT_USAGE
 from mapex.simulator import MotionError, Simulator
 from mapex.worlds import DEFAULT_SPEC, StartSpec, World, WorldError, load_world
-from mapex.worlds.starts import start_cell, start_type
+from mapex.worlds.starts import parse_start, start_cell
 from services.codec import DEFAULT_SERVICES, Payload, ProtocolError
 from services.keys import (
     ID_MAX_CHARS,
@@ -59,7 +60,6 @@ from services.zenoh_config import (
     zenoh_config_from_args,
 )
 
-EXIT_USAGE = 2  # bad flags, world or starts, unusable Zenoh configuration
 DEFAULT_EXPLORATION = ExplorationConfig()
 
 log = logging.getLogger("services.world")
@@ -269,7 +269,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--robots", type=int, default=1, help="number of robots (default: 1)")
     parser.add_argument(
         "--starts",
-        type=start_type,
+        type=argparse_type(parse_start),
         nargs="+",
         default=None,
         metavar="CORNER|ROW,COL",

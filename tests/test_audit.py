@@ -61,7 +61,7 @@ def test_the_command_prints_every_run_and_a_summary(tmp_path):
 
 @pytest.mark.parametrize(
     ("args", "message"),
-    [(["--maps", "generated:0", "--methods", "best"], "unknown method 'best'"),
+    [(["--maps", "generated:0", "--methods", "best"], "unknown method best"),
      (["--maps", "/no/such/map"], "no such map directory"),
      (["--maps", "generated:0", "--starts", "0"], "--starts must be at least 1"),
      (["--maps", "generated:0", "--out", "/no/such/dir/rows.json"], "no folder /no/such/dir")],

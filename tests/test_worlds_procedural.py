@@ -12,11 +12,11 @@ from scipy import ndimage
 
 from mapex.config import OPEN_PLAN_CONFIG, ProceduralConfig
 from mapex.worlds import WorldError, generate_floor_plan, load_world
+from mapex.worlds.__main__ import main
 from mapex.worlds.procedural import (
     CORRIDOR_LABEL,
     FloorLayout,
     generate_layout,
-    main,
     plan_config,
 )
 

@@ -32,6 +32,17 @@ MAIN_COMPARISON = ("nearest", "upen", "ig_hector", "mapex")
 ABLATIONS = ("deterministic", "no_variance", "observed_map", "no_visibility")
 
 
+def parse_method_list(text: str) -> list[str]:
+    """Comma-separated method names -> their list; a one-line ValueError naming the unknown."""
+    names = [item.strip() for item in text.split(",") if item.strip()]
+    unknown = [name for name in names if name not in METHODS]
+    if unknown or not names:
+        raise ValueError(
+            f"unknown method {', '.join(unknown) or repr(text)} (choose from {', '.join(METHODS)})"
+        )
+    return names
+
+
 def make_method(name: str, config: ExplorationConfig) -> Method:
     """Instantiate the method called `name` (ValueError with the choices otherwise)."""
     if name not in METHODS:
@@ -47,4 +58,5 @@ __all__ = [
     "Method",
     "PlanningContext",
     "make_method",
+    "parse_method_list",
 ]

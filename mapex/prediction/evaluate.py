@@ -32,6 +32,7 @@ from mapex.config import (
     PredictorEvaluationConfig,
     add_precision_argument,
 )
+from mapex.exit_codes import EXIT_USAGE
 from mapex.grid import RESOLUTION_M, UNKNOWN, observed_to_probability
 from mapex.metrics import building_footprint, occupied_iou
 from mapex.plotting import occupancy_image, plt
@@ -289,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
         scores = evaluate(args.maps, settings, args.figure, args.weights, args.precision)
     except (WorldError, WeightsError) as error:
         print(f"mapex.prediction.evaluate: error: {error}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     print(format_table(scores))
     print()
     print(format_split_table(scores, settings.near_known_cells))

@@ -27,6 +27,7 @@ from torch.nn import functional as F
 from tqdm import tqdm
 
 from mapex.config import ConfigError, MemberSplit, PredictorTrainingConfig, apply_overrides
+from mapex.exit_codes import EXIT_USAGE
 from mapex.prediction.batches import batch_loader
 from mapex.prediction.calibration import calibrate_weights, describe
 from mapex.prediction.dataset import (
@@ -404,7 +405,7 @@ def main(argv: list[str] | None = None) -> int:
             print(describe(calibration))
     except (ConfigError, WorldError, WeightsError, ValueError) as error:
         print(f"mapex.prediction.train: error: {error}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     return 0
 
 

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mapex.config import ReportConfig
+from mapex.exit_codes import EXIT_USAGE
 from mapex.report.figures import (
     MeanCurve,
     choose_snapshot_runs,
@@ -235,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
         files, summary = report_command(args)
     except (ReportError, OSError) as error:
         print(f"mapex.report: error: {error}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     print(summary)
     print(f"\nwrote {files.markdown}, {files.json} and {len(files.figures)} figures")
     return 0

@@ -8,8 +8,6 @@ embedded default world, DEFAULT_WORLD) or the path of a KTH map directory.
 
 from __future__ import annotations
 
-from typing import Any
-
 from mapex.worlds.base import (
     GENERATED_PREFIX,
     OPEN_GENERATED_PREFIX,
@@ -18,6 +16,7 @@ from mapex.worlds.base import (
     generated_prefix,
 )
 from mapex.worlds.kth import load_kth_map
+from mapex.worlds.procedural import generate_floor_plan, plan_config
 from mapex.worlds.starts import (
     StartSpec,
     normalise_start,
@@ -52,16 +51,6 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    """`generate_floor_plan`, imported on first use so that `python -m
-    mapex.worlds.procedural` does not find its module already imported."""
-    if name == "generate_floor_plan":
-        from mapex.worlds.procedural import generate_floor_plan
-
-        return generate_floor_plan
-    raise AttributeError(f"module 'mapex.worlds' has no attribute '{name}'")
-
-
 def load_world(spec: str) -> World:
     """The world named by `spec`; a one-line WorldError when it names none."""
     if not spec:
@@ -74,8 +63,6 @@ def load_world(spec: str) -> World:
     for free_outside in (False, True):
         prefix = generated_prefix(free_outside)
         if spec.startswith(prefix):
-            from mapex.worlds.procedural import generate_floor_plan, plan_config
-
             seed = _parse_seed(spec[len(prefix) :])
             return generate_floor_plan(seed, plan_config(free_outside))
     return load_kth_map(spec)

@@ -20,9 +20,7 @@ Run `python -m mapex.worlds.procedural --seed 3 --out plan.png` to look at one.
 
 from __future__ import annotations
 
-import argparse
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -774,32 +772,3 @@ def _orient(array: np.ndarray, transposed: bool, flip_rows: bool, flip_cols: boo
     if flip_cols:
         array = array[:, ::-1]
     return np.ascontiguousarray(array)
-
-
-# ---------------------------------------------------------------- demo
-
-
-def main(argv: list[str] | None = None) -> None:
-    """Save one plan as a PNG: walls black, valid space light blue."""
-    parser = argparse.ArgumentParser(description="Render one procedural floor plan.")
-    parser.add_argument("--seed", type=int, default=0, help="plan seed (default: 0)")
-    parser.add_argument("--out", type=Path, default=Path("plan.png"), help="PNG to write")
-    parser.add_argument(
-        "--free-outside", action="store_true", help="free space around the building, as in KTH"
-    )
-    args = parser.parse_args(argv)
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    world = generate_floor_plan(args.seed, plan_config(args.free_outside))
-    image = np.ones((*world.shape, 3))
-    image[world.valid_space] = (0.8, 0.9, 1.0)
-    image[world.occupancy] = 0.0
-    plt.imsave(args.out, image)
-    print(f"{world.name}: {world.shape[0]} x {world.shape[1]} cells -> {args.out}")
-
-
-if __name__ == "__main__":
-    main()

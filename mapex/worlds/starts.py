@@ -14,8 +14,6 @@ Cells beyond the map edge count as walls, since the robot cannot go there either
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 from scipy import ndimage
 
@@ -38,14 +36,6 @@ def parse_start(text: str) -> StartSpec:
     if corner >= N_CORNERS:
         raise ValueError(f"bad start '{text}': corners are 0-{N_CORNERS - 1}")
     return corner
-
-
-def start_type(text: str) -> StartSpec:
-    """argparse `type=` of a start flag: `parse_start`, its error shown as argparse's."""
-    try:
-        return parse_start(text)
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def normalise_start(start: StartSpec | np.integer | np.ndarray) -> StartSpec:
