@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapex.config import PRECISIONS, ExplorationConfig
+from mapex.config import ExplorationConfig
 from mapex.episode import run_episode
 from mapex.exit_codes import EXIT_USAGE
 from mapex.explorer import Explorer
@@ -30,6 +30,7 @@ from mapex.methods import PlanningContext, make_method
 from mapex.navigation import cost_map, plan_path, reachable_mask
 from mapex.prediction import DEFAULT_PREDICTOR, make_predictor
 from mapex.prediction.base import EnsemblePrediction
+from mapex.prediction.config import PRECISIONS
 from mapex.sensor import cast_scan, integrate_scan, scan_and_integrate
 from mapex.simulator import Simulator
 from mapex.worlds import WorldError, load_world, start_poses

@@ -12,13 +12,13 @@ from mapex.config import (
     ConfigError,
     ExplorationConfig,
     add_override_argument,
-    add_precision_argument,
     apply_overrides,
     argparse_type,
 )
 from mapex.exit_codes import EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
 from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
+from mapex.prediction.config import add_precision_argument
 from mapex.prediction.weights import WeightsError
 from mapex.worlds import DEFAULT_WORLD, WorldError, load_world, start_label
 from mapex.worlds.starts import parse_start

@@ -20,12 +20,12 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from mapex.config import ServicesConfig
 from mapex.grid import (  # noqa: F401  (re-exported: the wire quantisation)
     QUANTISATION_LEVELS,
     dequantise_probability,
     quantise_probability,
 )
+from services.config import ServicesConfig
 
 SCHEMA_VERSION = 1
 ARRAY_DTYPES = frozenset(

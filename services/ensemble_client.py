@@ -21,9 +21,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import zenoh
 
-from mapex.config import NetworkConfig, ServicesConfig
 from mapex.prediction.base import MEMBER_NAMES, EnsemblePrediction, Predictor, Region
+from mapex.prediction.config import NetworkConfig
 from services.codec import DEFAULT_SERVICES, ProtocolError
+from services.config import ServicesConfig
 from services.keys import AliveKey, alive_predictor_pattern, parse_key, predict_key
 from services.messages import ErrorReply, PredictReply, PredictRequest, decode_message
 

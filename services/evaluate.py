@@ -39,7 +39,6 @@ from tqdm import tqdm
 from mapex.config import (
     ConfigError,
     ExplorationConfig,
-    ServicesConfig,
     add_override_argument,
     apply_overrides,
     argparse_type,
@@ -50,6 +49,7 @@ from mapex.results import METRICS_FILE, episode_name, move_into_place
 from mapex.worlds import StartSpec, WorldError, load_world
 from mapex.worlds.starts import start_argument, start_cell
 from services.codec import DEFAULT_SERVICES
+from services.config import ServicesConfig
 from services.keys import ID_MAX_CHARS
 from services.messages import MetricsMessage
 from services.pool import RunProgress, add_pool_arguments, hub_session_config, worker_specs

@@ -14,7 +14,6 @@ from typing import Any, ClassVar, Literal, TypeVar
 
 import numpy as np
 
-from mapex.config import ServicesConfig
 from mapex.grid import OCCUPIED, Cell, observed_to_probability
 from mapex.sensor import Scan
 from mapex.worlds.base import World
@@ -29,6 +28,7 @@ from services.codec import (
     quantise_probability,
     unpack_message,
 )
+from services.config import ServicesConfig
 from services.keys import MEMBERS, is_valid_id
 
 MapKind = Literal["observed", "main", "mean", "variance"]

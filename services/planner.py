@@ -34,7 +34,6 @@ from tqdm import tqdm
 from mapex.config import (
     ConfigError,
     ExplorationConfig,
-    ServicesConfig,
     add_override_argument,
     apply_overrides,
     argparse_type,
@@ -47,6 +46,7 @@ from mapex.results import describe_end, run_name, write_results
 from mapex.worlds import StartSpec, World, WorldError, load_world, start_label
 from mapex.worlds.starts import parse_start, start_cell, start_spec_of
 from services.codec import DEFAULT_SERVICES
+from services.config import ServicesConfig
 from services.ensemble_client import ZenohEnsemble
 from services.keys import ID_MAX_CHARS, alive_planner_key, is_valid_id, robot_id
 from services.publishing import RunPublisher

@@ -13,9 +13,10 @@ import threading
 
 import zenoh
 
-from mapex.config import Precision, ServicesConfig, add_precision_argument
 from mapex.prediction.base import MEMBER_NAMES
+from mapex.prediction.config import Precision, add_precision_argument
 from services.codec import ProtocolError
+from services.config import ServicesConfig
 from services.keys import RobotKey, RobotTopic, parse_key, robot_key_pattern
 from services.messages import Message, decode_message
 from services.supervisor import ProcessSpec, claim_hub

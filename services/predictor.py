@@ -28,11 +28,12 @@ from pathlib import Path
 
 import zenoh
 
-from mapex.config import Precision, ServicesConfig, add_precision_argument
 from mapex.exit_codes import EXIT_USAGE
 from mapex.prediction.base import Predictor
+from mapex.prediction.config import Precision, add_precision_argument
 from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
 from services.codec import DEFAULT_SERVICES, Payload, ProtocolError
+from services.config import ServicesConfig
 from services.keys import ID_MAX_CHARS, MEMBERS, alive_predictor_key, is_valid_id, predict_key
 from services.messages import ErrorReply, PredictReply, PredictRequest
 from services.serving import (

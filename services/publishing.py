@@ -17,11 +17,11 @@ import threading
 import numpy as np
 import zenoh
 
-from mapex.config import ServicesConfig
 from mapex.episode import EpisodeResult
 from mapex.explorer import Explorer
 from mapex.recorder import MetricCurves, MetricRecorder
 from services.codec import DEFAULT_SERVICES
+from services.config import ServicesConfig
 from services.keys import ROBOT_TOPICS, robot_key
 from services.latest import LatestPublisher
 from services.messages import (

@@ -28,8 +28,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import IO
 
-from mapex.config import ServicesConfig
 from services.codec import DEFAULT_SERVICES
+from services.config import ServicesConfig
 from services.serving import SUPERVISOR_PID_ENV
 
 LogSink = Callable[[str], None]

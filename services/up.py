@@ -32,7 +32,6 @@ from tqdm import tqdm
 from mapex.config import (
     ConfigError,
     ExplorationConfig,
-    ServicesConfig,
     add_override_argument,
     apply_overrides,
     argparse_type,
@@ -42,6 +41,7 @@ from mapex.methods import METHODS
 from mapex.worlds import DEFAULT_SPEC, StartSpec, WorldError, load_world
 from mapex.worlds.starts import parse_start, start_argument, start_cell
 from services.codec import DEFAULT_SERVICES
+from services.config import ServicesConfig
 from services.keys import ID_MAX_CHARS, is_valid_id, robot_id
 from services.messages import PoseMessage
 from services.pool import RunProgress, add_pool_arguments, hub_session_config, worker_specs

@@ -32,9 +32,9 @@ from typing import Literal
 import numpy as np
 import zenoh
 
-from mapex.config import WatchConfig
 from mapex.exit_codes import EXIT_USAGE
 from services.codec import Payload, ProtocolError
+from services.config import WatchConfig
 from services.keys import ID_MAX_CHARS, RESERVED_RUN_IDS, is_valid_id, robot_key
 from services.messages import (
     FrontiersMessage,

@@ -17,8 +17,8 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from PIL import Image
 
-from mapex.config import WatchConfig
 from mapex.plotting import occupancy_image
+from services.config import WatchConfig
 from services.messages import (
     FrontiersMessage,
     GoalMessage,

@@ -29,12 +29,13 @@ from collections.abc import Callable, Sequence
 
 import zenoh
 
-from mapex.config import ExplorationConfig, ServicesConfig, argparse_type
+from mapex.config import ExplorationConfig, argparse_type
 from mapex.exit_codes import EXIT_USAGE
 from mapex.simulator import MotionError, Simulator
 from mapex.worlds import DEFAULT_SPEC, StartSpec, World, WorldError, load_world
 from mapex.worlds.starts import parse_start, start_cell
 from services.codec import DEFAULT_SERVICES, Payload, ProtocolError
+from services.config import ServicesConfig
 from services.keys import (
     ID_MAX_CHARS,
     RESERVED_RUN_IDS,

@@ -14,10 +14,10 @@ import time
 import numpy as np
 import zenoh
 
-from mapex.config import ServicesConfig
 from mapex.sensor import Scan
 from mapex.worlds.base import World
 from services.codec import DEFAULT_SERVICES, ProtocolError
+from services.config import ServicesConfig
 from services.keys import robot_id, robot_key, run_key
 from services.messages import (
     ErrorReply,

@@ -29,8 +29,8 @@ from typing import Literal
 
 import zenoh
 
-from mapex.config import ServicesConfig
 from services.codec import DEFAULT_SERVICES
+from services.config import ServicesConfig
 
 ZenohMode = Literal["peer", "client", "router"]
 MODES = ("peer", "client", "router")

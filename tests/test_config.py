@@ -2,13 +2,8 @@ import argparse
 
 import pytest
 
-from mapex.config import (
-    ConfigError,
-    ExplorationConfig,
-    PredictorTrainingConfig,
-    add_precision_argument,
-    apply_overrides,
-)
+from mapex.config import ConfigError, ExplorationConfig, apply_overrides
+from mapex.prediction.config import PredictorTrainingConfig, add_precision_argument
 
 
 def test_override_sets_typed_values():

@@ -26,7 +26,7 @@ from service_processes import (
 
 import services.predictor
 from deploy import router as deploy_router
-from mapex.config import ServicesConfig
+from services.config import ServicesConfig
 from services.keys import (
     MEMBERS,
     alive_predictor_key,

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from mapex.config import ClassicalPredictorConfig, InpaintMemberConfig
 from mapex.grid import (
     FREE,
     OCCUPIED,
@@ -20,6 +19,7 @@ from mapex.grid import (
 )
 from mapex.prediction import PREDICTORS, make_predictor
 from mapex.prediction.classical import ClassicalInpaintingEnsemble, inpaint_member
+from mapex.prediction.config import ClassicalPredictorConfig, InpaintMemberConfig
 
 
 @pytest.fixture(scope="module")

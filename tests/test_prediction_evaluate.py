@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from mapex.config import PredictorEvaluationConfig
 from mapex.grid import FREE, UNKNOWN
 from mapex.prediction.base import EnsemblePrediction
+from mapex.prediction.config import PredictorEvaluationConfig
 from mapex.prediction.evaluate import (
     CellScores,
     SnapshotScore,

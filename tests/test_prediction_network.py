@@ -7,8 +7,8 @@ import pytest
 import torch
 from tiny_training import SMALL
 
-from mapex.config import NetworkConfig
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
+from mapex.prediction.config import NetworkConfig
 from mapex.prediction.network import (
     OUTSIDE_MAP,
     LamaGenerator,

@@ -9,7 +9,6 @@ import sys
 import numpy as np
 import pytest
 
-from mapex.config import ReportConfig
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
 from mapex.methods import ABLATIONS, MAIN_COMPARISON
 from mapex.report import (
@@ -25,6 +24,7 @@ from mapex.report import (
     relative_improvements,
     write_report,
 )
+from mapex.report.config import ReportConfig
 
 SHAPE = (12, 18)
 

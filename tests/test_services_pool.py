@@ -6,7 +6,7 @@ import argparse
 
 import pytest
 
-from mapex.config import ServicesConfig
+from services.config import ServicesConfig
 from services.pool import hub_session_config, parse_member_list, worker_specs
 
 

@@ -26,13 +26,14 @@ from service_processes import (
     until,
 )
 
-from mapex.config import NetworkConfig, ServicesConfig
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
 from mapex.prediction.base import MEMBER_NAMES, Predictor
+from mapex.prediction.config import NetworkConfig
 from mapex.prediction.learned import LearnedEnsemble
 from mapex.prediction.network import LamaGenerator
 from mapex.prediction.weights import save_weights
 from services.codec import encode_array, pack_message
+from services.config import ServicesConfig
 from services.ensemble_client import MembersMissingError, ZenohEnsemble
 from services.keys import alive_predictor_key, predict_key
 from services.messages import ErrorReply, PredictReply, PredictRequest, decode_message

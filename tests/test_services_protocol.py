@@ -9,7 +9,6 @@ import msgpack
 import numpy as np
 import pytest
 
-from mapex.config import ServicesConfig
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
 from mapex.sensor import Scan
 from mapex.worlds.base import World
@@ -19,6 +18,7 @@ from services.codec import (
     encode_array,
     quantise_probability,
 )
+from services.config import ServicesConfig
 from services.protocol import (
     ROBOT_TOPICS,
     AliveKey,

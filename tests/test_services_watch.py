@@ -19,9 +19,9 @@ import pytest
 from PIL import Image
 from service_processes import REPO_ROOT, STOP_DEADLINE_S, ServiceProcesses, until
 
-from mapex.config import WatchConfig
 from mapex.grid import FREE, OCCUPIED
 from services.codec import ProtocolError
+from services.config import WatchConfig
 from services.keys import robot_key
 from services.latest import LatestPublisher
 from services.messages import (

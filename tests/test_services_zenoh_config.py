@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from service_processes import free_loopback_port, until
 
-from mapex.config import ServicesConfig
+from services.config import ServicesConfig
 from services.protocol import (
     MapMessage,
     PredictReply,

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from mapex.config import OPEN_PLAN_CONFIG, ProceduralConfig
 from mapex.worlds import WorldError, generate_floor_plan, load_world
 from mapex.worlds.__main__ import main
+from mapex.worlds.config import OPEN_PLAN_CONFIG, ProceduralConfig
 from mapex.worlds.procedural import (
     CORRIDOR_LABEL,
     FloorLayout,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mapex.config import NetworkConfig, PredictorTrainingConfig
+from mapex.prediction.config import NetworkConfig, PredictorTrainingConfig
 from mapex.prediction.dataset import SnapshotSet, explore_snapshots, training_world_specs
 from mapex.worlds import load_world
 

@@ -20,9 +20,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from mapex.config import MetricsConfig, PredictorTrainingConfig
+from mapex.config import MetricsConfig
 from mapex.grid import UNKNOWN
 from mapex.metrics import building_footprint, occupied_iou
+from mapex.prediction.config import PredictorTrainingConfig
 from mapex.prediction.dataset import SnapshotSet, snapshot_probabilities
 from mapex.prediction.network import LamaGenerator, encode_observed
 from mapex.prediction.weights import load_member, set_logit_bias

@@ -26,9 +26,9 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from mapex.config import ClassicalPredictorConfig, InpaintMemberConfig
 from mapex.grid import OCCUPIED, UNKNOWN
 from mapex.prediction.base import Predictor
+from mapex.prediction.config import ClassicalPredictorConfig, InpaintMemberConfig
 
 _CV_METHODS = {"ns": cv2.INPAINT_NS, "telea": cv2.INPAINT_TELEA}
 

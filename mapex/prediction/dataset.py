@@ -14,12 +14,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapex.config import ExplorationConfig, MetricsConfig, PredictorTrainingConfig
+from mapex.config import ExplorationConfig, MetricsConfig
 from mapex.explorer import Explorer
 from mapex.frontiers import frontier_cells
 from mapex.grid import UNKNOWN
 from mapex.methods import make_method
 from mapex.metrics import building_footprint
+from mapex.prediction.config import PredictorTrainingConfig
 from mapex.prediction.network import OUTSIDE_MAP
 from mapex.simulator import Simulator
 from mapex.worlds import World, generated_prefix, is_procedural, load_world, start_poses

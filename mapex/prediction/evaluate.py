@@ -26,12 +26,7 @@ import numpy as np
 from scipy.stats import rankdata
 from tqdm import tqdm
 
-from mapex.config import (
-    ExplorationConfig,
-    Precision,
-    PredictorEvaluationConfig,
-    add_precision_argument,
-)
+from mapex.config import ExplorationConfig
 from mapex.exit_codes import EXIT_USAGE
 from mapex.grid import RESOLUTION_M, UNKNOWN, observed_to_probability
 from mapex.metrics import building_footprint, occupied_iou
@@ -39,6 +34,7 @@ from mapex.plotting import occupancy_image, plt
 from mapex.prediction import make_predictor
 from mapex.prediction.base import EnsemblePrediction
 from mapex.prediction.classical import distance_to_known
+from mapex.prediction.config import Precision, PredictorEvaluationConfig, add_precision_argument
 from mapex.prediction.dataset import snapshots_at
 from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
 from mapex.worlds import WorldError, load_world, start_poses

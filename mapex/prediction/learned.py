@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mapex.config import PRECISIONS, NetworkConfig, Precision
 from mapex.prediction.base import Predictor
+from mapex.prediction.config import PRECISIONS, NetworkConfig, Precision
 from mapex.prediction.network import autocast, encode_observed
 from mapex.prediction.weights import MEMBER_NAMES, WEIGHTS_DIR, load_member_with_bias
 

@@ -27,8 +27,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from mapex.config import NetworkConfig, Precision
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
+from mapex.prediction.config import NetworkConfig, Precision
 
 INPUT_CHANNELS = 3  # free, occupied, unknown (one-hot of the observed codes)
 OUTSIDE_MAP = np.uint8(255)  # not a map code: a cell beyond the map's border (all-zero encoding)

@@ -26,10 +26,11 @@ import torch
 from torch.nn import functional as F
 from tqdm import tqdm
 
-from mapex.config import ConfigError, MemberSplit, PredictorTrainingConfig, apply_overrides
+from mapex.config import ConfigError, apply_overrides
 from mapex.exit_codes import EXIT_USAGE
 from mapex.prediction.batches import batch_loader
 from mapex.prediction.calibration import calibrate_weights, describe
+from mapex.prediction.config import MemberSplit, PredictorTrainingConfig
 from mapex.prediction.dataset import (
     CropSampler,
     SnapshotSet,

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import torch
 
-from mapex.config import NetworkConfig
 from mapex.prediction.base import MEMBER_NAMES
+from mapex.prediction.config import NetworkConfig
 from mapex.prediction.network import LamaGenerator
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"

@@ -29,8 +29,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from mapex.config import ReportConfig
 from mapex.exit_codes import EXIT_USAGE
+from mapex.report.config import ReportConfig
 from mapex.report.figures import (
     MeanCurve,
     choose_snapshot_runs,

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapex.config import ReportConfig
 from mapex.methods.information_gain import MapEx
+from mapex.report.config import ReportConfig
 from mapex.report.runs import METRIC_LABELS, METRICS, RunRecord
 
 REFERENCE_METHOD = MapEx.name

@@ -26,8 +26,8 @@ from typing import NamedTuple
 import numpy as np
 from scipy import ndimage
 
-from mapex.config import OPEN_PLAN_CONFIG, ProceduralConfig
 from mapex.worlds.base import World, WorldError, generated_prefix
+from mapex.worlds.config import OPEN_PLAN_CONFIG, ProceduralConfig
 
 CORRIDOR_LABEL = 1  # corridors and open areas share one label: no walls between them
 FIRST_ROOM_LABEL = 2

@@ -1,0 +1,136 @@
+"""Settings of the map predictors: network size, training recipe, evaluation, the classical
+ensemble, and the forward-pass precision. Overridable with `--set` like every other
+configuration (`mapex.config.apply_overrides`)."""
+
+from __future__ import annotations
+
+import argparse
+import typing
+from dataclasses import dataclass, field
+from typing import Literal
+
+Precision = Literal["float32", "bfloat16"]
+
+
+PRECISIONS: tuple[str, ...] = typing.get_args(Precision)
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    """Size of the LaMa-style generator (mapex/prediction/network.py)."""
+
+    channels: int = 64
+    n_blocks: int = 4  # FFC residual blocks
+    downscale: int = 8  # the FFC trunk works at 1/downscale resolution (pixel unshuffle)
+    global_ratio: float = 0.75  # share of channels in the spectral (global) branch
+    refine_channels: int = 16  # full-resolution refinement of the upsampled logits
+    context_cells: int = 32  # map around a predicted region that the network also sees
+    # inference: average the logits over the map and the map turned by 180 degrees (two
+    # forward passes); the network is not equivariant, and the two views' errors differ
+    average_turned_view: bool = True
+
+
+MemberSplit = Literal["thirds", "by_source"]
+
+
+@dataclass(frozen=True)
+class PredictorTrainingConfig:
+    """Data and schedule of `python -m mapex.prediction.train` (docs/algorithms.md#prediction)."""
+
+    procedural_worlds: int = 48  # generated:<first_procedural_seed + i>
+    first_procedural_seed: int = 1000
+    snapshot_methods: tuple[str, ...] = ("nearest", "observed_map")
+    starts_per_world: int = 2  # procedural plans
+    kth_starts_per_world: int = 4
+    kth_share: float = 0.5  # share of training crops taken from KTH snapshots (if any)
+    snapshot_steps: int = 1000
+    snapshot_every_steps: int = 50
+    crop_cells: int = 256
+    frontier_share: float = 0.75  # crops centred near a frontier, the rest anywhere
+    edge_overhang_cells: int = 64  # how far a crop may hang over the map's border
+    batch_size: int = 8
+    main_steps: int = 6000  # G, on all data
+    member_steps: int = 1200  # G_1..G_3, each fine-tuning G on its part of the data
+    members_from_main: bool = True  # G_1..G_3 fine-tune G (the paper's fine-tune one LaMa)
+    # G_k's data: "by_source" = G_1 and G_2 one KTH training map each, G_3 the procedural
+    # plans; "thirds" = the worlds whose index is k - 1 modulo 3.
+    member_split: MemberSplit = "by_source"
+    # Procedural plans with free space outside the building (generated-open:SEED), as in
+    # the KTH maps, instead of solid wall.
+    free_outside_plans: bool = True
+    learning_rate: float = 2e-3
+    warmup_share: float = 0.1  # of each run's steps spent raising the learning rate (one cycle)
+    weight_decay: float = 1e-4
+    wall_weight: float = 2.0  # BCE weight of wall cells (walls are the rarer class)
+    member_wall_weight: float = 1.0  # the same for G_1..G_3's fine-tuning (plain cross-entropy)
+    # After G_1..G_3 have started from it, G is polished: fine-tuned further with this
+    # many steps of its loss plus `polish_soft_iou_weight` times a soft IoU of the walls
+    # per crop (the metric the evaluation scores), at `polish_learning_rate`. 0: no polish.
+    main_polish_steps: int = 1500
+    polish_soft_iou_weight: float = 3.0
+    polish_learning_rate: float = 1e-3
+    # G is polished this many times from its base weights (seeds seed + 4, + 5, ...) and
+    # g.pt is the mean of the polished weights (a uniform model soup). 1: one polish.
+    polish_runs: int = 1
+    calibrate_main: bool = True  # after training G, choose its decision threshold (IoU)
+    calibration_snapshots: int = 200  # training snapshots G's threshold is chosen on
+    calibration_thresholds: tuple[float, ...] = tuple(round(0.2 + 0.025 * i, 3) for i in range(17))
+    checkpoint_every_steps: int = 100
+    seed: int = 0
+    data_workers: int = 0  # processes cutting crops (for a GPU); the count changes the crop order
+    # Forward pass in training. "bfloat16" autocasts it (weights, loss and optimiser stay
+    # float32): about twice as fast on CPUs with AVX512-BF16 and on GPUs (slower on other
+    # CPUs). The shipped weights were trained in bfloat16; "float32" writes other weights.
+    precision: Precision = "bfloat16"
+    network: NetworkConfig = field(default_factory=NetworkConfig)  # size of every member
+
+
+@dataclass(frozen=True)
+class PredictorEvaluationConfig:
+    """`python -m mapex.prediction.evaluate` (docs/algorithms.md#prediction): when snapshots are
+    taken, and what
+    counts as near the known map."""
+
+    snapshot_times: tuple[int, ...] = (100, 300, 600)
+    near_known_cells: int = 10  # 1 m: unknown cells this close to a known one are "near"
+    target_margin_iou: float = 0.10  # the lead over the classical IoU that G should reach
+
+
+InpaintMethod = Literal["ns", "telea"]
+
+
+@dataclass(frozen=True)
+class InpaintMemberConfig:
+    """One member of the classical inpainting ensemble (mapex.prediction.classical)."""
+
+    method: InpaintMethod = "ns"  # cv2.INPAINT_NS (Navier-Stokes) or cv2.INPAINT_TELEA
+    radius_cells: int = 1  # cv2.inpaint neighbourhood radius, in working-scale cells
+    scale: int = 1  # works at 1/scale resolution (walls block-max downsampled) when > 1
+    band_cells: float = 8.0  # only unknown cells this close (map cells) to known ones are painted
+    prior: float = 0.05  # wall probability of the unknown cells beyond the band
+    wall_level: float = 0.5  # painted value mapped to 0.5 by a piecewise-linear contrast
+
+
+@dataclass(frozen=True)
+class ClassicalPredictorConfig:
+    """The classical (non-learned) predictor ensemble; member 0 is G (best single setting)."""
+
+    members: tuple[InpaintMemberConfig, ...] = (
+        InpaintMemberConfig(method="ns", radius_cells=1, scale=1, band_cells=10.0, prior=0.05),
+        InpaintMemberConfig(method="ns", radius_cells=3, scale=2, band_cells=6.0, prior=0.0),
+        InpaintMemberConfig(method="ns", radius_cells=1, scale=4, band_cells=8.0, prior=0.1),
+        InpaintMemberConfig(
+            method="telea", radius_cells=1, scale=4, band_cells=6.0, prior=0.15, wall_level=0.3
+        ),
+    )
+
+
+def add_precision_argument(parser: argparse.ArgumentParser) -> None:
+    """--precision of the learned ensemble's forward pass into `args.precision`."""
+    parser.add_argument(
+        "--precision",
+        default="float32",
+        choices=PRECISIONS,
+        help="forward pass: float32 (default; the README's figures) or bfloat16 (about 2x "
+        "faster on CPUs with AVX512-BF16/AMX and on GPUs, slower on other CPUs)",
+    )

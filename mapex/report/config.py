@@ -1,0 +1,27 @@
+"""Settings of the evaluation report `python -m mapex.report`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from mapex.methods import ABLATIONS, MAIN_COMPARISON
+
+
+@dataclass(frozen=True)
+class ReportConfig:
+    """The evaluation report `python -m mapex.report`: figure settings and snapshot steps."""
+
+    snapshot_steps: tuple[int, ...] = (200, 500, 1000)  # columns of snapshots.png
+    dpi: int = 120
+    curve_panel_inches: float = 4.0  # width (and height) of one metric panel of curves.png
+    snapshot_panel_inches: float = 2.2  # width of one map panel of snapshots.png
+    # maps wider than this (cols / rows) get one snapshots.png row per (method, map kind)
+    snapshot_wide_aspect: float = 2.0
+    snapshot_wide_panel_inches: float = 6.0  # width of one map panel in that wide layout
+    snapshot_wide_row_gap_inches: float = 0.2  # space between the rows of that wide layout
+    band_alpha: float = 0.2  # opacity of the standard-error bands
+
+    @property
+    def method_order(self) -> tuple[str, ...]:
+        """Rows of every table and figure: the main comparison, then the ablations."""
+        return MAIN_COMPARISON + ABLATIONS

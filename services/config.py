@@ -1,0 +1,49 @@
+"""Settings of the distributed simulator: wire limits, Zenoh defaults, timeouts, and the
+live viewer. Overridable like every other configuration (`mapex.config.apply_overrides`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class ServicesConfig:
+    """Wire limits and Zenoh defaults of the distributed simulator (services/, docs/design.md)."""
+
+    max_message_bytes: int = 32 * 2**20  # encoded payload cap, checked before unpacking
+    max_decoded_bytes: int = 128 * 2**20  # cap on a message's decompressed array bytes
+    compress_threshold_bytes: int = 4096  # arrays larger than this travel zlib-compressed
+    zlib_level: int = 1  # fastest level: maps are mostly runs of one code
+    hub_endpoint: str = "tcp/127.0.0.1:7447"  # well-known loopback endpoint served by services.up
+    ephemeral_listen_endpoint: str = "tcp/127.0.0.1:0"  # default listener: loopback, any free port
+    predict_timeout_s: float = 10.0  # per-member prediction query; a hung worker costs this once
+    supervision_poll_s: float = 0.2  # services.up / evaluate: how often children are checked
+    publish_period_s: float = 0.1  # planner -> viewers: at most one batch of maps per period
+    predict_retries: int = 3  # re-sends of a query that no worker was routed (no reply at all)
+    predict_retry_pause_s: float = 0.2  # before the first re-send; doubles for each next one
+    liveliness_query_timeout_s: float = 2.0  # planner's start-up discovery of live workers
+    predictor_threads: int = 1  # torch CPU threads of one predictor worker (docs/design.md)
+    predictor_drain_s: float = 3.0  # on shutdown, wait this long for the query being computed
+    world_drain_s: float = 2.0  # on shutdown, wait this long for the step being answered
+    step_timeout_s: float = 10.0  # one step query; a lost reply is retried with the same seq
+    step_retries: int = 3  # attempts per step before the planner gives up on the world
+    world_wait_s: float = 60.0  # planner start-up: how long to wait for the world's keys
+    workers_wait_s: float = 120.0  # planner start-up: how long to wait for every member
+    supervisor_max_restarts: int = 5  # a crashed server is restarted this often, then left dead
+    stop_grace_s: float = 3.0  # services.up: SIGTERM, wait this long, then SIGKILL what is left
+    hub_probe_timeout_s: float = 1.0  # connect probe of a hub port that a bind probe found taken
+
+
+@dataclass(frozen=True)
+class WatchConfig:
+    """The live viewer `services.watch`: how often it renders, how big, how many GIF frames."""
+
+    every_s: float = 1.0  # render at most this often (only when something new arrived)
+    poll_s: float = 0.1  # how often the loop looks at arrivals (reaction time to "finished")
+    get_timeout_s: float = 2.0  # late-joiner query; topics still unheard are re-asked this often
+    inbox_depth: int = 8  # newest payloads kept per topic between polls (a bad one hides no good)
+    dpi: int = 80
+    panel_inches: float = 4.0  # width of one map panel
+    max_gif_frames: int = 300  # at the cap every other frame is dropped (memory stays bounded)
+    gif_max_side_px: int = 480  # GIF frames are downscaled to fit this square
+    gif_frame_ms: int = 200
