@@ -5,8 +5,10 @@
 member, all issued before any reply is awaited, each to the least recently used live worker
 of that member: replicas share the load and every query is answered by exactly one worker.
 A member whose worker times out, refuses, sends an invalid reply or has no live worker is
-left out, and the result says which members answered: the planner goes on with those
-(docs/design.md#reliability) and records the step as degraded.
+left out, and the result says which members answered (`member_ids`) and which worker served
+each (`workers`): the planner goes on with those (docs/design.md#reliability) and records
+the step as degraded. Its interface is that of every `Predictor`: `predict`,
+`predict_later`, `wait` and `close`.
 """
 
 from __future__ import annotations
@@ -16,46 +18,40 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import zenoh
 
-from mapex.prediction.base import MEMBER_NAMES, EnsemblePrediction, Predictor, Region
+from mapex.prediction.base import (
+    MEMBER_NAMES,
+    EnsemblePrediction,
+    Predictor,
+    Region,
+    assemble_prediction,
+)
 from mapex.prediction.config import NetworkConfig
 from services.codec import DEFAULT_SERVICES, ProtocolError
 from services.config import ServicesConfig
 from services.keys import AliveKey, alive_predictor_pattern, parse_key, predict_key
 from services.messages import ErrorReply, PredictReply, PredictRequest, decode_message
 
-_WAIT_POLL_S = 0.02  # polling step of `wait_for_workers`
+_WAIT_POLL_S = 0.02  # polling step of `wait`
 
 log = logging.getLogger("services.ensemble_client")
 
 
-class MembersMissingError(RuntimeError):
-    """Some requested members did not answer (use `predict_available` to go on without them)."""
-
-
 @dataclass(frozen=True)
-class MemberAnswers:
-    """What the pool answered for one crop.
-
-    probabilities: float32 (len(answered), h, w), in the order of `answered` (member indices);
-    missing: the requested members that did not answer; workers / compute_ms: per answered
-    member, the worker that served it and its compute time in milliseconds.
-    """
+class _Answers:
+    """What the pool answered for one crop: float32 (len(answered), h, w) in the order of
+    `answered` (member indices), and the worker that served each of them."""
 
     probabilities: np.ndarray
     answered: tuple[int, ...]
-    missing: tuple[int, ...]
-    workers: dict[int, str] = field(default_factory=dict)
-    compute_ms: dict[int, float] = field(default_factory=dict)
+    workers: tuple[str, ...]
 
-    @property
-    def complete(self) -> bool:
-        """Whether every requested member answered."""
-        return not self.missing
+    def missing(self, members: Sequence[int]) -> tuple[int, ...]:
+        return tuple(k for k in members if k not in self.answered)
 
 
 @dataclass
@@ -88,7 +84,6 @@ class ZenohEnsemble(Predictor):
     def __init__(self, session: zenoh.Session, services: ServicesConfig = DEFAULT_SERVICES) -> None:
         self.session = session
         self.services = services
-        self.last_answers: MemberAnswers | None = None
         self._lock = threading.Lock()
         self._live: dict[str, dict[str, int]] = {name: {} for name in MEMBER_NAMES}  # -> last use
         self._ticks = itertools.count(1)
@@ -108,8 +103,8 @@ class ZenohEnsemble(Predictor):
         with self._lock:
             return {name: tuple(sorted(workers)) for name, workers in self._live.items()}
 
-    def wait_for_workers(
-        self, members: Sequence[str] = MEMBER_NAMES, timeout_s: float = 10.0, count: int = 1
+    def wait(
+        self, timeout_s: float = 10.0, members: Sequence[str] = MEMBER_NAMES, count: int = 1
     ) -> bool:
         """Wait until each of `members` has at least `count` live workers; False on timeout."""
         deadline = time.monotonic() + timeout_s
@@ -124,12 +119,6 @@ class ZenohEnsemble(Predictor):
     def close(self) -> None:
         """Stop tracking workers (the session stays open: it belongs to the caller)."""
         self._subscriber.undeclare()
-
-    def __enter__(self) -> ZenohEnsemble:
-        return self
-
-    def __exit__(self, *_exc: object) -> None:
-        self.close()
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         self._set_alive(str(sample.key_expr), alive=sample.kind == zenoh.SampleKind.PUT)
@@ -164,14 +153,13 @@ class ZenohEnsemble(Predictor):
     # ------------------------------------------------------------------ prediction
 
     def predict_members(self, observed: np.ndarray, members: Sequence[int]) -> np.ndarray:
-        """All requested members' probabilities, float32 (len(members), h, w).
-
-        Raises MembersMissingError when one did not answer (`last_answers` says which).
-        """
-        answers = self.predict_available(observed, members)
-        if answers.missing:
-            names = ", ".join(MEMBER_NAMES[k] for k in answers.missing)
-            raise MembersMissingError(f"members {names} did not answer")
+        """Every requested member's probabilities for the crop `observed`, float32
+        (len(members), h, w); RuntimeError naming the members that did not answer."""
+        answers = self._finish(self._start(observed, members))
+        missing = answers.missing(members)
+        if missing:
+            names = ", ".join(MEMBER_NAMES[k] for k in missing)
+            raise RuntimeError(f"members {names} did not answer")
         return answers.probabilities
 
     def predict(
@@ -180,20 +168,17 @@ class ZenohEnsemble(Predictor):
         region: Region | None = None,
         members: Sequence[int] | None = None,
     ) -> EnsemblePrediction:
-        """`Predictor.predict` with only the members that answered (`answered` says which)."""
-        return self.predict_ensemble(observed, region, members)[0]
+        """`Predictor.predict` with only the members that answered (`member_ids` says which).
 
-    def predict_available(self, observed: np.ndarray, members: Sequence[int]) -> MemberAnswers:
-        """Ask every member in `members` for the crop `observed` in parallel; keep who answers.
-
-        Waits at most `services.predict_timeout_s` (all queries run concurrently). A query
-        that ends with no reply at all (no queryable was routed: a worker just left, a link
-        or a route was being re-established: Zenoh then ends a query at once with no
-        reply, eclipse-zenoh/zenoh#2767) is sent again after a short pause, up to
-        `services.predict_retries` times; a timed-out or refused one is not (a hung worker
-        costs one timeout, docs/design.md#reliability).
+        Every member is asked at once; this waits at most `services.predict_timeout_s`. A query
+        that ends with no reply at all (no queryable was routed: a worker just left, a link or a
+        route was being re-established; Zenoh then ends a query at once with no reply,
+        eclipse-zenoh/zenoh#2767) is sent again after a short pause, up to
+        `services.predict_retries` times; a timed-out or refused one is not (a hung worker costs
+        one timeout, docs/design.md#reliability). The main map is G's only if G answered
+        (`member_ids[0] == 0`).
         """
-        return self._finish(self._start(observed, members))
+        return self.predict_later(observed, region, members)()
 
     def predict_later(
         self,
@@ -207,11 +192,15 @@ class ZenohEnsemble(Predictor):
         prediction overlaps the next steps of exploration). `observed` must not change.
         """
         members = tuple(range(self.n_members)) if members is None else tuple(members)
-        inflight = self._start(self._members_view(observed, region), members)
+        r0, r1, c0, c1 = self.members_window(observed.shape, region)
+        inflight = self._start(observed[r0:r1, c0:c1], members)
 
         def result() -> EnsemblePrediction:
             answers = self._finish(inflight)
-            return self._assemble(observed, region, answers)
+            return assemble_prediction(
+                observed, region, answers.probabilities, answers.answered, self.context_cells,
+                answers.workers,
+            )  # fmt: skip
 
         return result
 
@@ -225,13 +214,12 @@ class ZenohEnsemble(Predictor):
         sent = [p for p in (self._send(k, payload) for k in members) if p is not None]
         return _Inflight(request_id, payload, crop.shape, members, sent)
 
-    def _finish(self, inflight: _Inflight) -> MemberAnswers:
+    def _finish(self, inflight: _Inflight) -> _Answers:
         """Collect the replies (re-sending unrouted queries) and assemble the answers."""
         members, shape = inflight.members, inflight.shape
         if inflight.request_id < 0:
             empty = np.zeros((len(members), *shape), dtype=np.float32)
-            self.last_answers = MemberAnswers(empty, members, ())
-            return self.last_answers
+            return _Answers(empty, members, ("",) * len(members))
         results: dict[int, PredictReply | None] = {}
         pending = inflight.pending
         for attempt in range(1 + self.services.predict_retries):
@@ -247,40 +235,7 @@ class ZenohEnsemble(Predictor):
         stacked = np.empty((len(answered), *shape), dtype=np.float32)
         for row, k in enumerate(answered):
             stacked[row] = results[k].probabilities()
-        answers = MemberAnswers(
-            stacked,
-            answered,
-            tuple(k for k in members if k not in answered),
-            {k: results[k].worker_id for k in answered},
-            {k: results[k].compute_ms for k in answered},
-        )
-        self.last_answers = answers
-        return answers
-
-    def predict_ensemble(
-        self,
-        observed: np.ndarray,
-        region: Region | None = None,
-        members: Sequence[int] | None = None,
-    ) -> tuple[EnsemblePrediction, MemberAnswers]:
-        """Like `predict`, with only the members that answered (row i is `answered[i]`).
-
-        The prediction's main map is member 0 only if G answered (check `answered[0] == 0`).
-        """
-        members = tuple(range(self.n_members)) if members is None else tuple(members)
-        answers = self.predict_available(self._members_view(observed, region), members)
-        return self._assemble(observed, region, answers), answers
-
-    def _members_view(self, observed: np.ndarray, region: Region | None) -> np.ndarray:
-        """The crop the workers predict (`Predictor.members_window`)."""
-        r0, r1, c0, c1 = self.members_window(observed.shape, region)
-        return observed[r0:r1, c0:c1]
-
-    def _assemble(
-        self, observed: np.ndarray, region: Region | None, answers: MemberAnswers
-    ) -> EnsemblePrediction:
-        answered = _Answered(answers.probabilities, self.context_cells)
-        return answered.predict(observed, region, answers.answered)
+        return _Answers(stacked, answered, tuple(results[k].worker_id for k in answered))
 
     def _send(self, member: int, payload: bytes) -> _Pending | None:
         name = MEMBER_NAMES[member]
@@ -337,15 +292,3 @@ def _reply_problem(
     if message.probabilities_u8.shape != tuple(shape):
         return f"reply of shape {message.probabilities_u8.shape}, expected {tuple(shape)}"
     return None
-
-
-class _Answered(Predictor):
-    """Already computed member outputs, so `Predictor.predict` can assemble them."""
-
-    def __init__(self, probabilities: np.ndarray, context_cells: int) -> None:
-        self.probabilities = probabilities
-        self.n_members = len(probabilities)
-        self.context_cells = context_cells
-
-    def predict_members(self, observed: np.ndarray, members: Sequence[int]) -> np.ndarray:
-        return self.probabilities

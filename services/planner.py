@@ -104,7 +104,7 @@ def explore(
     try:
         with ZenohEnsemble(session, services) as ensemble:
             publisher.status(0, "starting", f"waiting for members {', '.join(MEMBER_NAMES)}")
-            if not ensemble.wait_for_workers(timeout_s=services.workers_wait_s):
+            if not ensemble.wait(timeout_s=services.workers_wait_s):
                 log.warning("not every member has a live worker: the run starts degraded")
             publisher.status(0, "running", f"{method} on {world.name}")
 

@@ -34,7 +34,7 @@ from mapex.prediction.network import LamaGenerator
 from mapex.prediction.weights import save_weights
 from services.codec import encode_array, pack_message
 from services.config import ServicesConfig
-from services.ensemble_client import MembersMissingError, ZenohEnsemble
+from services.ensemble_client import ZenohEnsemble
 from services.keys import alive_predictor_key, predict_key
 from services.messages import ErrorReply, PredictReply, PredictRequest, decode_message
 from services.predictor import MemberServer
@@ -150,22 +150,21 @@ def test_predictions_match_the_in_process_ensemble(ensemble, weights_dir):
     local = LearnedEnsemble(weights_dir).predict(observed)
     remote = ensemble.predict(observed)
     np.testing.assert_allclose(remote.members, local.members, atol=QUANTUM + 1e-6)
-    assert ensemble.last_answers.answered == (0, 1, 2, 3) and ensemble.last_answers.complete
+    assert remote.member_ids == (0, 1, 2, 3) and len(remote.workers) == 4
     region = (4, 50, 0, 70)
-    prediction, answers = ensemble.predict_ensemble(observed, region, members=(1, 2, 3))
-    assert answers.answered == (1, 2, 3)
+    prediction = ensemble.predict(observed, region, members=(1, 2, 3))
+    assert prediction.member_ids == (1, 2, 3)
     local_region = LearnedEnsemble(weights_dir).predict(observed, region, members=(1, 2, 3))
     np.testing.assert_allclose(prediction.members, local_region.members, atol=QUANTUM + 1e-6)
-    assert all(ms >= 0 for ms in answers.compute_ms.values())
 
 
 def test_replicas_share_queries_and_answer_each_exactly_once(hub, ensemble):
     recording = RecordingSession(hub[0])
     client = ZenohEnsemble(recording, FAST)
     try:
-        assert client.wait_for_workers(("g",), count=2)
+        assert client.wait(members=("g",), count=2)
         crop = partly_observed((40, 40), seed=1)
-        served = [client.predict_available(crop, (0,)).workers[0] for _ in range(8)]
+        served = [client.predict(crop, members=(0,)).workers[0] for _ in range(8)]
     finally:
         client.close()
     assert set(served) == {"g-a", "g-b"}
@@ -197,7 +196,7 @@ def test_malformed_requests_get_an_error_reply_and_the_worker_lives_on(hub, pool
         error = decode_message(replies[0].err.payload.to_bytes(), (ErrorReply,))
         assert error.message.startswith("malformed predict request"), what
     assert pool.processes["g1-a"].poll() is None
-    assert ensemble.predict_available(partly_observed(), (1,)).answered == (1,)
+    assert ensemble.predict(partly_observed(), members=(1,)).member_ids == (1,)
     assert "refused a malformed request" in pool.log_of("g1-a")
 
 
@@ -206,17 +205,17 @@ def test_a_killed_worker_is_reported_missing_and_the_others_answer(hub, pool, en
     pool.processes["g3-a"].wait(STOP_DEADLINE_S)
     try:
         started = time.monotonic()
-        answers = ensemble.predict_available(partly_observed(), (0, 1, 2, 3))
+        answers = ensemble.predict(partly_observed(), members=(0, 1, 2, 3))
         assert time.monotonic() - started < FAST.predict_timeout_s + 2.0
-        assert answers.missing == (3,) and answers.answered == (0, 1, 2)
-        assert answers.probabilities.shape == (3, *partly_observed().shape)
-        with pytest.raises(MembersMissingError, match="g3"):
+        assert answers.member_ids == (0, 1, 2)
+        assert answers.members.shape == (3, *partly_observed().shape)
+        with pytest.raises(RuntimeError, match="g3"):
             ensemble.predict_members(partly_observed(), (2, 3))
         until(lambda: not ensemble.live_workers()["g3"], "the token of the killed worker to go")
     finally:  # a supervisor would restart it; so do we, for the other tests
         pool.start("g3", "g3-b")
         pool.wait_alive(ensemble, "g3", "g3-b")
-    assert ensemble.predict_available(partly_observed(), (3,)).workers == {3: "g3-b"}
+    assert ensemble.predict(partly_observed(), members=(3,)).workers == ("g3-b",)
 
 
 def test_sigint_stops_a_worker_cleanly(pool, ensemble):
@@ -330,13 +329,14 @@ def test_the_client_keeps_only_valid_replies(rogue_pair, mode):
     planner, rogue = rogue_pair
     services = ServicesConfig(predict_timeout_s=0.5, liveliness_query_timeout_s=0.5)
     with rogue_worker(rogue, mode), ZenohEnsemble(planner, services) as client:
-        assert client.wait_for_workers(("g",), timeout_s=5.0)
+        assert client.wait(timeout_s=5.0, members=("g",))
         crop = partly_observed((12, 10))
-        answers = client.predict_available(crop, (0, 1))  # g1 has no worker at all
-        assert answers.missing == ((1,) if mode == "good" else (0, 1))
+        answers = client.predict(crop, members=(0, 1))  # g1 has no worker at all
+        assert answers.member_ids == ((0,) if mode == "good" else ())
         if mode == "good":
-            assert answers.workers == {0: "rogue"}
-            np.testing.assert_allclose(answers.probabilities[0], 0.5, atol=1 / 510)
+            assert answers.workers == ("rogue",)
+            unknown = crop == UNKNOWN
+            np.testing.assert_allclose(answers.members[0][unknown], 0.5, atol=1 / 510)
 
 
 @pytest.mark.parametrize("unrouted", [0, 1, 3, 4])
@@ -348,8 +348,8 @@ def test_a_query_left_unrouted_is_sent_again_up_to_the_retry_limit(rogue_pair, u
     )  # fmt: skip
     session = UnroutedSession(planner, unrouted)
     with rogue_worker(rogue, "good"), ZenohEnsemble(session, services) as client:
-        assert client.wait_for_workers(("g",), timeout_s=5.0)
-        answers = client.predict_available(partly_observed((12, 10)), (0,))
+        assert client.wait(timeout_s=5.0, members=("g",))
+        answers = client.predict(partly_observed((12, 10)), members=(0,))
     answered = unrouted <= services.predict_retries
-    assert answers.answered == ((0,) if answered else ())
+    assert answers.member_ids == ((0,) if answered else ())
     assert len(session.gets) == min(unrouted + 1, services.predict_retries + 1)

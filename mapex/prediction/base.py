@@ -42,6 +42,7 @@ class EnsemblePrediction:
     members: np.ndarray
     region: Region | None = None
     member_ids: tuple[int, ...] | None = None
+    workers: tuple[str, ...] | None = None  # the worker that served each row, when remote
 
     @property
     def answered(self) -> tuple[int, ...]:
@@ -113,25 +114,16 @@ class Predictor(ABC):
         members: Sequence[int] | None = None,
     ) -> EnsemblePrediction:
         """Predict the chosen members (all if None) on `region` of `observed` (whole map if None).
-
         Outside the region the members keep the observed map (unknown = 0.5, so
         zero variance); inside, known cells are copied through from O_t.
         """
         members = tuple(range(self.n_members)) if members is None else tuple(members)
-        r0, r1, c0, c1 = region or (0, observed.shape[0], 0, observed.shape[1])
         w0, w1, v0, v1 = self.members_window(observed.shape, region)
-        known_prob = observed_to_probability(observed)
-        stacked = np.repeat(known_prob[None], len(members), axis=0)
         view = observed[w0:w1, v0:v1]
         raw = self.predict_members(view, members)
         if raw.shape != (len(members), *view.shape):
             raise ValueError(f"{self.name}: members returned {raw.shape}, expected {view.shape}")
-        raw = raw[:, r0 - w0 : r1 - w0, c0 - v0 : c1 - v0]
-        raw = dequantise_probability(quantise_probability(raw))
-        crop = observed[r0:r1, c0:c1]
-        unknown = crop == UNKNOWN
-        stacked[:, r0:r1, c0:c1] = np.where(unknown[None], raw, known_prob[None, r0:r1, c0:c1])
-        return EnsemblePrediction(stacked, region, members)
+        return assemble_prediction(observed, region, raw, members, self.context_cells)
 
     def members_window(self, shape: tuple[int, int], region: Region | None) -> Region:
         """The part of a map of `shape` the members see to predict `region` (whole map if
@@ -152,6 +144,44 @@ class Predictor(ABC):
     def predict_main(self, observed: np.ndarray) -> np.ndarray:
         """G's whole-map prediction with known cells copied through (what the metrics judge)."""
         return self.predict(observed, members=(0,)).main
+
+    def wait(self, timeout_s: float) -> bool:
+        """Wait until every member can answer; False if that did not happen in `timeout_s`.
+        An in-process ensemble always can."""
+        return True
+
+    def close(self) -> None:
+        """Release what the ensemble holds (nothing in one process)."""
+
+    def __enter__(self) -> Predictor:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+
+def assemble_prediction(
+    observed: np.ndarray,
+    region: Region | None,
+    raw: np.ndarray,
+    members: Sequence[int],
+    context_cells: int,
+    workers: tuple[str, ...] | None = None,
+) -> EnsemblePrediction:
+    """The ensemble prediction from the members' raw outputs on their window of `region`
+    (the region with `context_cells` of map around it): outputs quantised to the wire's
+    levels, known cells copied through, the observed map outside the region. One function
+    for the in-process and the distributed ensembles, so both give the same numbers."""
+    window = region or (0, observed.shape[0], 0, observed.shape[1])
+    r0, r1, c0, c1 = window
+    w0, _, v0, _ = with_context(window, observed.shape, context_cells)
+    known_prob = observed_to_probability(observed)
+    stacked = np.repeat(known_prob[None], len(members), axis=0)
+    crop_raw = raw[:, r0 - w0 : r1 - w0, c0 - v0 : c1 - v0]
+    crop_raw = dequantise_probability(quantise_probability(crop_raw))
+    unknown = observed[r0:r1, c0:c1] == UNKNOWN
+    stacked[:, r0:r1, c0:c1] = np.where(unknown[None], crop_raw, known_prob[None, r0:r1, c0:c1])
+    return EnsemblePrediction(stacked, region, tuple(members), workers)
 
 
 def with_context(region: Region, shape: tuple[int, int], context_cells: int) -> Region:
