@@ -150,7 +150,7 @@ class Predictor(ABC):
         An in-process ensemble always can."""
         return True
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 (a no-op in one process, not abstract)
         """Release what the ensemble holds (nothing in one process)."""
 
     def __enter__(self) -> Predictor:

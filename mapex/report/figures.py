@@ -17,9 +17,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mapex.report.config import ReportConfig  # noqa: E402
 from mapex.grid import dequantise_probability, observed_to_probability  # noqa: E402
 from mapex.plotting import occupancy_image  # noqa: E402
+from mapex.report.config import ReportConfig  # noqa: E402
 from mapex.report.runs import (  # noqa: E402
     METRIC_LABELS,
     METRICS,

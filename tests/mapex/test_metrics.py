@@ -23,7 +23,7 @@ from mapex.metrics import (
 )
 from mapex.search import path_from_tree, shortest_path_tree
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def two_rooms() -> tuple[np.ndarray, np.ndarray]:

@@ -1,4 +1,4 @@
-"""services.supervisor with real child processes (tests/supervised_child.py) on this machine."""
+"""services.supervisor with real child processes (tests/helpers/supervised_child.py)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from service_processes import free_loopback_port, until
 
 from services.supervisor import ProcessSpec, Supervisor, claim_hub, parse_tcp_endpoint
 
-TESTS_DIR = Path(__file__).resolve().parent
+HELPERS_DIR = Path(__file__).resolve().parents[1] / "helpers"
 GRACE_S = 3.0  # the default grace; a loaded 2-core machine needs it for a polite child
 STOP_MARGIN_S = 1.0  # stop() must be done within its grace period plus this
 
@@ -42,7 +42,7 @@ class Lines:
 def child(name: str, *args: str, restart: bool = False) -> ProcessSpec:
     """A supervised_child spec importable from the tests directory."""
     return ProcessSpec(
-        name, "supervised_child", args, restart=restart, cwd=str(TESTS_DIR), env={"X": "1"}
+        name, "supervised_child", args, restart=restart, cwd=str(HELPERS_DIR), env={"X": "1"}
     )
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_raycast import reference_walk
+from reference_rays import reference_walk
 
 from mapex.raycast import ray_directions
 from mapex.visibility import STOP_RULES, visibility_gain, visible_mask

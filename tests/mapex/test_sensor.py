@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_raycast import reference_walk
+from reference_rays import reference_walk
 
 from mapex.config import SensorConfig
 from mapex.grid import FREE, OCCUPIED, UNKNOWN, new_observed_map

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 STOP_DEADLINE_S = 5.0  # SIGINT to exit (DESIGN.md)
 ROUTER_START_DEADLINE_S = 60.0  # a cold interpreter on a loaded machine; the start takes seconds
 ROUTER_READY = re.compile(r"router ([0-9a-f]+) listening on")

@@ -1,4 +1,4 @@
-"""A tiny child for tests/test_services_supervisor.py: `python -m supervised_child [options]`.
+"""A tiny child for tests/services/test_supervisor.py: `python -m supervised_child [options]`.
 
 Prints the `--say` lines (and `--raw` bytes) at once, says `ready` once its signal handling
 is set up, then exits with `--exit` code or, with `--sleep`, sleeps until SIGTERM (exit 0).
