@@ -9,13 +9,15 @@ of a cluster is therefore, in this order:
 1. its frontier point, when reachable;
 2. else the reachable frontier cell of the cluster nearest (Euclidean) to the point;
 3. else, when no cell of the cluster is reachable, the reachable known-free cell nearest
-   to the cluster (the robot approaches and keeps scanning, which reveals the space behind
-   the sliver).
+   to the cluster, the one nearest to the point among equally near ones (the robot
+   approaches and keeps scanning, which reveals the space behind the sliver).
 
 A cell the robot has already scanned from is never a goal: the world is static and the
 LiDAR noise-free, so a second scan from there reveals nothing new. A cluster whose rule
-lands on such a cell is exhausted for now (a later scan elsewhere may change it). Ties go
-to the earliest cell in row-major order. Scores are always those of the frontier point.
+lands on such a cell is exhausted for now: the robot stood at its approach cell and the
+scan from there changed nothing (a later scan elsewhere may change the cluster, and with it
+its goal). Ties go to the earliest cell in row-major order. Scores are always those of the
+frontier point.
 """
 
 from __future__ import annotations
@@ -54,33 +56,31 @@ def cluster_goal(context: PlanningContext, index: int) -> Goal | None:
     """The goal of frontier cluster `index` by the rule above, or None when it has none."""
     point = np.asarray(context.frontiers[index], dtype=np.int64)
     members = context.cluster_members(index)
-    cell, any_reachable = _nearest_reachable_member(context, members, point)
-    if cell is None and not any_reachable:
-        cell = _approach_cell(context, members)
-        if cell is not None and context.was_scanned_from(cell):
-            cell = None
-    return None if cell is None else Goal(cell, point)
+    cell = _nearest_reachable_member(context, members, point)
+    if cell is None:
+        cell = _approach_cell(context, members, point)
+    if cell is None or context.was_scanned_from(cell):
+        return None
+    return Goal(cell, point)
 
 
 def _nearest_reachable_member(
     context: PlanningContext, members: np.ndarray, point: np.ndarray
-) -> tuple[np.ndarray | None, bool]:
-    """(The reachable, not yet scanned-from member nearest to `point` or None, whether any
-    member is reachable at all)."""
+) -> np.ndarray | None:
+    """The reachable member nearest to `point` (the point itself when reachable), or None."""
     offsets = members - point
     order = np.argsort(np.einsum("ij,ij->i", offsets, offsets), kind="stable")
-    any_reachable = False
     for cell in members[order]:
-        if not context.can_reach(cell):
-            continue
-        any_reachable = True
-        if not context.was_scanned_from(cell):
-            return cell.astype(np.int64), True
-    return None, any_reachable
+        if context.can_reach(cell):
+            return cell.astype(np.int64)
+    return None
 
 
-def _approach_cell(context: PlanningContext, members: np.ndarray) -> np.ndarray | None:
-    """The reachable known-free cell nearest (Euclidean) to any member, or None."""
+def _approach_cell(
+    context: PlanningContext, members: np.ndarray, point: np.ndarray
+) -> np.ndarray | None:
+    """The reachable known-free cell nearest (Euclidean) to any member; of those equally near,
+    the one nearest to the frontier point (then row-major first). None when there is none."""
     standing = context.reachable & (context.observed == FREE)
     if not standing.any():
         return None
@@ -88,5 +88,6 @@ def _approach_cell(context: PlanningContext, members: np.ndarray) -> np.ndarray 
     not_member[members[:, 0], members[:, 1]] = 0
     distance = cv2.distanceTransform(not_member, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     distance = np.where(standing, distance, np.inf)
-    row, col = np.unravel_index(int(np.argmin(distance)), distance.shape)
-    return np.array([row, col], dtype=np.int64)
+    nearest = np.argwhere(distance == distance.min())
+    offsets = nearest - point
+    return nearest[int(np.argmin(np.einsum("ij,ij->i", offsets, offsets)))].astype(np.int64)
