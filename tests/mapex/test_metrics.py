@@ -113,7 +113,8 @@ def test_tu_goals_stable_across_processes():
     walls, valid = two_rooms()
     here = tu_goals("two_rooms", walls, valid, (2, 2), 5).tolist()
     script = (
-        "from tests.test_metrics import two_rooms\n"
+        "import sys; sys.path.insert(0, 'tests/mapex')\n"
+        "from test_metrics import two_rooms\n"
         "from mapex.metrics import tu_goals\n"
         "w, v = two_rooms()\n"
         "print(tu_goals('two_rooms', w, v, (2, 2), 5).tolist())\n"
