@@ -13,7 +13,6 @@ from mapex.config import (
     ExplorationConfig,
     add_override_argument,
     apply_overrides,
-    argparse_type,
 )
 from mapex.exit_codes import EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
@@ -21,7 +20,7 @@ from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
 from mapex.prediction.config import add_precision_argument
 from mapex.prediction.weights import WeightsError
 from mapex.worlds import DEFAULT_WORLD, WorldError, load_world, start_label
-from mapex.worlds.starts import parse_start
+from mapex.worlds.starts import add_start_argument
 
 DEFAULT_RESULTS_DIR = Path("results")
 
@@ -58,14 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_precision_argument(run)
     run.add_argument("--steps", type=int, default=1000, help="time budget T; default: %(default)s")
-    run.add_argument(
-        "--start",
-        type=argparse_type(parse_start),
-        default=0,
-        metavar="CORNER|ROW,COL",
-        help="start pose: a corner 0-3 of the valid space, or an explicit cell ROW,COL of the "
-        "0.1 m grid (free, inside valid space, 3 cells clear of walls); default: 0",
-    )
+    add_start_argument(run, 0, "start pose (default 0)")
     run.add_argument("--seed", type=int, default=0, help="random seed (UPEN's RRT); default: 0")
     run.add_argument(
         "--out", type=Path, default=None, help="results folder; default: results/<run name>"

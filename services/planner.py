@@ -36,7 +36,6 @@ from mapex.config import (
     ExplorationConfig,
     add_override_argument,
     apply_overrides,
-    argparse_type,
 )
 from mapex.episode import EpisodeResult, run_episode
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
@@ -44,7 +43,7 @@ from mapex.methods import METHODS
 from mapex.prediction.base import MEMBER_NAMES
 from mapex.results import describe_end, run_name, write_results
 from mapex.worlds import StartSpec, World, WorldError, load_world, start_label
-from mapex.worlds.starts import parse_start, start_cell, start_spec_of
+from mapex.worlds.starts import add_start_argument, start_cell, start_spec_of
 from services.codec import DEFAULT_SERVICES
 from services.config import ServicesConfig
 from services.ensemble_client import ZenohEnsemble
@@ -211,13 +210,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="simulate this world here instead of asking a world process: 'default', "
         "'generated:SEED', 'generated-open:SEED' or a KTH map directory (needs --start)",
     )
-    parser.add_argument(
-        "--start",
-        type=argparse_type(parse_start),
-        default=None,
-        metavar="CORNER|ROW,COL",
-        help="start: a corner 0-3 or a cell ROW,COL; with --world where to start, else where "
-        "the world process must have placed the robot",
+    add_start_argument(
+        parser, None, "with --world where to start, else where the world placed the robot"
     )
     add_zenoh_arguments(parser)
     return parser

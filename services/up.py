@@ -34,12 +34,11 @@ from mapex.config import (
     ExplorationConfig,
     add_override_argument,
     apply_overrides,
-    argparse_type,
 )
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
 from mapex.worlds import DEFAULT_SPEC, StartSpec, WorldError, load_world
-from mapex.worlds.starts import parse_start, start_argument, start_cell
+from mapex.worlds.starts import add_start_argument, start_argument, start_cell
 from services.codec import DEFAULT_SERVICES
 from services.config import ServicesConfig
 from services.keys import ID_MAX_CHARS, is_valid_id, robot_id
@@ -195,14 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: %(default)s)")  # fmt: skip
     parser.add_argument("--method", default="mapex", choices=sorted(METHODS))
     parser.add_argument("--steps", type=int, default=1000, help="time budget T (default 1000)")
-    parser.add_argument(
-        "--start",
-        type=argparse_type(parse_start),
-        default=0,
-        metavar="CORNER|ROW,COL",
-        help="start pose: a corner 0-3 (the first run's; default 0) or a cell ROW,COL of the "
-        "0.1 m grid",
-    )
+    add_start_argument(parser, 0, "start pose of the first run (default 0)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first run (default 0)")
     parser.add_argument("--robots", type=int, default=1, help="robots per world (default 1)")
     parser.add_argument("--runs", type=int, default=1, help="episodes run at once (default 1)")

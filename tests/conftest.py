@@ -1,4 +1,6 @@
-"""Shared fixtures: the development KTH maps beside the checkout (skipped when absent)."""
+"""Shared fixtures (the development KTH maps beside the checkout, skipped when absent; a
+loopback Zenoh hub) and the `slow` marker: every test of tests/services and tests/deploy
+starts real processes, so all of them are slow; `pytest -m "not slow"` is the fast loop."""
 
 from __future__ import annotations
 
@@ -7,6 +9,18 @@ from pathlib import Path
 import pytest
 
 KTH_DEV_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kth_dev"
+
+
+PROCESS_TEST_DIRS = ("services", "deploy")  # test folders whose tests start real processes
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark every test of the process-test folders `slow`."""
+    tests_dir = Path(__file__).resolve().parent
+    for item in items:
+        parts = Path(item.fspath).resolve().relative_to(tests_dir).parts
+        if parts[0] in PROCESS_TEST_DIRS:
+            item.add_marker(pytest.mark.slow)
 
 
 @pytest.fixture

@@ -14,9 +14,12 @@ Cells beyond the map edge count as walls, since the robot cannot go there either
 
 from __future__ import annotations
 
+import argparse
+
 import numpy as np
 from scipy import ndimage
 
+from mapex.config import argparse_type
 from mapex.grid import Cell
 from mapex.worlds.base import World, WorldError
 
@@ -36,6 +39,24 @@ def parse_start(text: str) -> StartSpec:
     if corner >= N_CORNERS:
         raise ValueError(f"bad start '{text}': corners are 0-{N_CORNERS - 1}")
     return corner
+
+
+START_HELP = (
+    "a corner 0-3 of the valid space or a cell ROW,COL of the 0.1 m grid (free, in valid "
+    "space, 3 cells clear of walls)"
+)
+
+
+def add_start_argument(parser: argparse.ArgumentParser, default: StartSpec | None, help: str):
+    """A `--start CORNER|ROW,COL` flag into `args.start` (`parse_start`'s errors shown as
+    argparse's); `help` says what the start is for, the accepted forms are added."""
+    parser.add_argument(
+        "--start",
+        type=argparse_type(parse_start),
+        default=default,
+        metavar="CORNER|ROW,COL",
+        help=f"{help}: {START_HELP}",
+    )
 
 
 def normalise_start(start: StartSpec | np.integer | np.ndarray) -> StartSpec:

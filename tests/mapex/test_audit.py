@@ -50,6 +50,7 @@ def audit(*args: str) -> subprocess.CompletedProcess:
     )  # fmt: skip
 
 
+@pytest.mark.slow  # runs the command in a process of its own
 def test_the_command_prints_every_run_and_a_summary(tmp_path):
     done = audit("--maps", "generated:0", "--starts", "2", "--steps", "40", "--jobs", "1",
                  "--out", str(tmp_path / "rows.json"))  # fmt: skip
@@ -59,6 +60,7 @@ def test_the_command_prints_every_run_and_a_summary(tmp_path):
     assert (tmp_path / "rows.json").read_text().count('"end_reason"') == 4
 
 
+@pytest.mark.slow  # runs the command in a process of its own
 @pytest.mark.parametrize(
     ("args", "message"),
     [(["--maps", "generated:0", "--methods", "best"], "unknown method best"),

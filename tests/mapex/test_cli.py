@@ -40,6 +40,7 @@ def test_run_writes_the_results_folder(tmp_path):
     assert (out / "final.png").read_bytes()[:4] == b"\x89PNG"
 
 
+@pytest.mark.slow  # runs the command in a process of its own
 @pytest.mark.parametrize(
     "args, message",
     [
@@ -64,6 +65,7 @@ def test_bad_input_gives_one_line_error(args, message):
     assert len(error_lines) == 1 and message in error_lines[0]
 
 
+@pytest.mark.slow  # runs the command in a process of its own
 def test_bad_map_file_gives_one_line_error(tmp_path):
     (tmp_path / "occ_map.npy").write_bytes(b"not a numpy file")
     done = run_cli("run", "--no-progress", "--world", str(tmp_path))

@@ -109,6 +109,7 @@ def test_tu_goals_all_candidates_when_fewer_than_asked():
         tu_goals("none", walls, np.zeros_like(valid), (2, 2), 5)
 
 
+@pytest.mark.slow  # runs the command in a process of its own
 def test_tu_goals_stable_across_processes():
     walls, valid = two_rooms()
     here = tu_goals("two_rooms", walls, valid, (2, 2), 5).tolist()

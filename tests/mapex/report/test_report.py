@@ -267,6 +267,7 @@ def run_cli(*args):
     )
 
 
+@pytest.mark.slow  # runs the command in a process of its own
 def test_cli_errors(tmp_path, capsys):
     empty = tmp_path / "empty"
     (empty / ".staging-run").mkdir(parents=True)
@@ -281,6 +282,7 @@ def test_cli_errors(tmp_path, capsys):
     assert len(lines) == 1 and "missing" in lines[0] and "does not exist" in lines[0]
 
 
+@pytest.mark.slow  # runs the command in a process of its own
 def test_cli_help():
     done = run_cli("--help")
     assert done.returncode == 0 and "RESULTS_DIR" in done.stdout and "--snapshot-run" in done.stdout
