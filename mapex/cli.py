@@ -20,7 +20,7 @@ from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
 from mapex.prediction.config import add_precision_argument
 from mapex.prediction.weights import WeightsError
 from mapex.worlds import DEFAULT_WORLD, WorldError, load_world, start_label
-from mapex.worlds.starts import add_start_argument
+from mapex.worlds.starts import add_start_argument, start_cell
 
 DEFAULT_RESULTS_DIR = Path("results")
 
@@ -84,6 +84,7 @@ def run_command(args: argparse.Namespace) -> int:
         raise ConfigError(f"--steps must be at least 1 (got {args.steps})")
     config = apply_overrides(ExplorationConfig(steps=args.steps), args.overrides)
     world = load_world(args.world)
+    start_cell(world, args.start, config.world.start_clearance_cells)  # a bad start: no work
     predictor = make_predictor(args.predictor, **predictor_options(args))
     with tqdm(
         total=config.steps,

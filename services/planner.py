@@ -98,6 +98,7 @@ def explore(
         world, start = _remote_start(source, run, robot, exploration, start)
     else:
         source, world, start = None, load_world(local.spec), local.start
+        start_cell(world, start, exploration.world.start_clearance_cells)  # WorldError if bad
     publisher = RunPublisher(session, run, robot_id(robot), services)
     token = session.liveliness().declare_token(alive_planner_key(run))
     try:
