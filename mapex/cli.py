@@ -28,7 +28,7 @@ DEFAULT_RESULTS_DIR = Path("results")
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m mapex",
-        description="MapEx exploration simulator (in-process). See README.md for the methods.",
+        description="MapEx exploration simulator, in one process (docs/algorithms.md).",
     )
     commands = parser.add_subparsers(dest="command", required=True)
     run = commands.add_parser(

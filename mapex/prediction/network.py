@@ -180,7 +180,7 @@ class LamaGenerator(nn.Module):
         With `average_turned_view`, the mean of the logits for the map and, turned back,
         for the map turned by 180 degrees. Training crops come in every orientation, but
         the network is not equivariant, so the two views err in different cells and their
-        mean is the better map (README, "The learned ensemble")."""
+        mean is the better map (docs/prediction.md, "The learned ensemble")."""
         if not self.config.average_turned_view:
             return self(x)
         turned = (2, 3)  # flipping rows and columns turns the map by 180 degrees
