@@ -37,7 +37,7 @@ from mapex.config import (
 from mapex.episode import run_episode
 from mapex.exit_codes import EXIT_FAILED, EXIT_USAGE
 from mapex.grid import FREE, OCCUPIED, UNKNOWN, Cell
-from mapex.methods import make_method, parse_method_list
+from mapex.methods import METHODS, parse_method_list
 from mapex.navigation import cost_map, reachable_mask
 from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
 from mapex.worlds import World, WorldError, load_world
@@ -88,8 +88,7 @@ def audit_run(
 ) -> AuditRow:
     """Run one episode and judge how it ended."""
     world = load_world(world_spec)
-    uses_prediction = make_method(method, config).uses_prediction
-    ensemble = make_predictor(predictor) if uses_prediction else None
+    ensemble = make_predictor(predictor) if METHODS[method].uses_prediction else None
     result = run_episode(world, method, ensemble, start, 0, config)
     reachable = reachable_valid_cells(world, start, config)
     unknown = float((result.final_observed[reachable] == UNKNOWN).mean()) if reachable.any() else 0

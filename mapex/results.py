@@ -45,9 +45,6 @@ def episode_name(world: str, method: str, start: StartSpec, seed: int) -> str:
     return f"{safe_world}-{method}-{start_label(start)}-seed{seed}"
 
 
-END_REASONS = ("budget", "explored", "unreachable")
-
-
 def describe_end(result: EpisodeResult) -> str:
     """How the run ended, for a summary line: `ran all 1000 steps`, `no frontier left at
     step 812` or `no frontier reachable at step 37`."""

@@ -91,9 +91,8 @@ class Method(ABC):
     name: str = ""
     uses_prediction: bool = False
     replan_every_steps: int | None = None  # re-plan periodically even if the goal is kept
-    drop_goal_without_unknown: bool = (
-        True  # goal rule, docs/algorithms.md#goals; UPEN's goals are not frontiers
-    )
+    # the goal-keeping rule of docs/algorithms.md#goals; UPEN's goals are not frontiers
+    drop_goal_without_unknown: bool = True
 
     def __init__(self, config: ExplorationConfig) -> None:
         self.config = config

@@ -19,7 +19,7 @@ import argparse
 import numpy as np
 from scipy import ndimage
 
-from mapex.config import argparse_type
+from mapex.config import WorldConfig, argparse_type
 from mapex.grid import Cell
 from mapex.worlds.base import World, WorldError
 
@@ -42,8 +42,8 @@ def parse_start(text: str) -> StartSpec:
 
 
 START_HELP = (
-    "a corner 0-3 of the valid space or a cell ROW,COL of the 0.1 m grid (free, in valid "
-    "space, 3 cells clear of walls)"
+    f"a corner 0-{N_CORNERS - 1} of the valid space or a cell ROW,COL of the 0.1 m grid "
+    f"(free, in valid space, {WorldConfig().start_clearance_cells} cells clear of walls)"
 )
 
 
@@ -83,7 +83,9 @@ def start_cell(world: World, start: StartSpec, clearance_cells: int) -> Cell:
     start = normalise_start(start)
     if isinstance(start, int):
         if not 0 <= start < N_CORNERS:
-            raise WorldError(f"world '{world.name}': start {start} is not a corner 0-3")
+            raise WorldError(
+                f"world '{world.name}': start {start} is not a corner 0-{N_CORNERS - 1}"
+            )
         return start_poses(world, clearance_cells)[start]
     row, col = int(start[0]), int(start[1])
     where = f"world '{world.name}': start cell ({row}, {col})"
