@@ -24,7 +24,7 @@ from mapex.config import MetricsConfig
 from mapex.grid import UNKNOWN
 from mapex.metrics import building_footprint, occupied_iou
 from mapex.prediction.config import PredictorTrainingConfig
-from mapex.prediction.dataset import SnapshotSet, snapshot_probabilities
+from mapex.prediction.dataset import SnapshotSet, snapshot_probabilities, source_shares
 from mapex.prediction.network import LamaGenerator, encode_observed
 from mapex.prediction.weights import load_member, set_logit_bias
 
@@ -36,7 +36,7 @@ class Calibration:
     threshold: float
     logit_bias: float
     snapshots: int
-    kth_share: float  # the sample's share of KTH snapshots (the training crops' mix)
+    shares: dict[str, float]  # the sample's mix of sources (the polish crops' mix)
     mean_iou_by_threshold: dict[str, float]  # "0.30" -> mean IoU over the snapshots
 
 
@@ -56,8 +56,8 @@ def iou_by_threshold(
 
 def calibration_sample(snapshots: SnapshotSet, config: PredictorTrainingConfig) -> np.ndarray:
     """Indices of the snapshots to calibrate on: `calibration_snapshots` drawn without
-    replacement with the training crops' mix of KTH and procedural snapshots (seeded)."""
-    probabilities = snapshot_probabilities(snapshots, config.kth_share)
+    replacement with the polish crops' mix of sources (seeded)."""
+    probabilities = snapshot_probabilities(snapshots, source_shares(config, config.polish_sources))
     count = min(config.calibration_snapshots, int(np.count_nonzero(probabilities)))
     rng = np.random.default_rng(config.seed)
     return np.sort(rng.choice(len(probabilities), size=count, replace=False, p=probabilities))
@@ -88,7 +88,7 @@ def calibrate(
         threshold=best,
         logit_bias=logit_bias(best),
         snapshots=len(ious),
-        kth_share=config.kth_share,
+        shares=source_shares(config, config.polish_sources),
         mean_iou_by_threshold={
             f"{t:.3f}": round(float(m), 4) for t, m in zip(thresholds, means, strict=True)
         },

@@ -35,26 +35,42 @@ MemberSplit = Literal["thirds", "by_source"]
 
 @dataclass(frozen=True)
 class PredictorTrainingConfig:
-    """Data and schedule of `python -m mapex.prediction.train` (docs/algorithms.md#prediction)."""
+    """Data and schedule of `python -m mapex.prediction.train` (docs/prediction.md#training).
 
-    procedural_worlds: int = 48  # generated:<first_procedural_seed + i>
+    Sources (mapex.worlds.data.SOURCES): "houseexpo" (houses along a corridor), "ipa" (IPA
+    training maps), "kth" (the two KTH training floors), "procedural" (our plans)."""
+
+    procedural_worlds: int = 32  # generated-open:<first_procedural_seed + i>
     first_procedural_seed: int = 1000
+    houseexpo_worlds: int = 48  # houseexpo-corridor:<first_houseexpo_seed + i>
+    first_houseexpo_seed: int = 0
+    use_ipa: bool = True  # the IPA training maps (mapex.worlds.data.IPA_TRAINING_MAPS)
     snapshot_methods: tuple[str, ...] = ("nearest", "observed_map")
-    starts_per_world: int = 2  # procedural plans
+    starts_per_world: int = 2  # procedural plans and HouseExpo worlds
+    ipa_starts_per_world: int = 2
     kth_starts_per_world: int = 4
-    kth_share: float = 0.5  # share of training crops taken from KTH snapshots (if any)
+    # Share of G's pretraining crops per source (renormalised over the sources present);
+    # a member's crops keep these proportions within its own sources.
+    houseexpo_share: float = 0.35
+    ipa_share: float = 0.3
+    kth_share: float = 0.2
+    procedural_share: float = 0.15
     snapshot_steps: int = 1000
     snapshot_every_steps: int = 50
     crop_cells: int = 256
     frontier_share: float = 0.75  # crops centred near a frontier, the rest anywhere
     edge_overhang_cells: int = 64  # how far a crop may hang over the map's border
     batch_size: int = 8
-    main_steps: int = 6000  # G, on all data
-    member_steps: int = 1200  # G_1..G_3, each fine-tuning G on its part of the data
+    main_steps: int = 6000  # G's pretraining, on every source
+    member_steps: int = 1200  # G_1..G_3, each fine-tuning G's pretrained weights
     members_from_main: bool = True  # G_1..G_3 fine-tune G (the paper's fine-tune one LaMa)
-    # G_k's data: "by_source" = G_1 and G_2 one KTH training map each, G_3 the procedural
-    # plans; "thirds" = the worlds whose index is k - 1 modulo 3.
+    # G_k's data: "by_source" = the k-th entry of member_sources ("+" joins sources);
+    # "thirds" = the worlds whose index is k - 1 modulo 3.
     member_split: MemberSplit = "by_source"
+    member_sources: tuple[str, ...] = ("houseexpo", "ipa", "kth+procedural")
+    # Procedural plans with free space outside the building (generated-open:SEED), as in
+    # the KTH maps, instead of solid wall.
+    free_outside_plans: bool = True
     # Procedural plans with free space outside the building (generated-open:SEED), as in
     # the KTH maps, instead of solid wall.
     free_outside_plans: bool = True
@@ -63,10 +79,12 @@ class PredictorTrainingConfig:
     weight_decay: float = 1e-4
     wall_weight: float = 2.0  # BCE weight of wall cells (walls are the rarer class)
     member_wall_weight: float = 1.0  # the same for G_1..G_3's fine-tuning (plain cross-entropy)
-    # After G_1..G_3 have started from it, G is polished: fine-tuned further with this
-    # many steps of its loss plus `polish_soft_iou_weight` times a soft IoU of the walls
-    # per crop (the metric the evaluation scores), at `polish_learning_rate`. 0: no polish.
+    # After G_1..G_3 have started from it, G is polished: fine-tuned further on the
+    # office-like sources `polish_sources` with this many steps of its loss plus
+    # `polish_soft_iou_weight` times a soft IoU of the walls per crop (the metric the
+    # evaluation scores), at `polish_learning_rate`. 0: no polish.
     main_polish_steps: int = 1500
+    polish_sources: tuple[str, ...] = ("ipa", "kth", "procedural")
     polish_soft_iou_weight: float = 3.0
     polish_learning_rate: float = 1e-3
     # G is polished this many times from its base weights (seeds seed + 4, + 5, ...) and

@@ -23,11 +23,9 @@ from mapex.metrics import building_footprint
 from mapex.prediction.config import PredictorTrainingConfig
 from mapex.prediction.network import OUTSIDE_MAP
 from mapex.simulator import Simulator
-from mapex.worlds import World, generated_prefix, is_procedural, load_world, start_poses
-
-# Maps that share buildings with held-back test maps (docs/algorithms.md#worlds): never
-# train on them.
-VALIDATION_ONLY_MAPS = ("50037764_PLAN1", "50052748")
+from mapex.worlds import World, generated_prefix, load_world, start_poses
+from mapex.worlds.base import CORRIDOR_PREFIX
+from mapex.worlds.data import SOURCES, never_train_on, world_source
 
 
 @dataclass
@@ -44,16 +42,27 @@ class SnapshotSet:
         return SnapshotSet(self.worlds, [self.observed[i] for i in indices], self.world_of[indices])
 
 
-def training_world_specs(config: PredictorTrainingConfig, kth_dirs: list[str]) -> list[str]:
-    """World specs to explore: procedural plans, then the allowed KTH training maps."""
-    for directory in kth_dirs:
-        if any(directory.rstrip("/").endswith(name) for name in VALIDATION_ONLY_MAPS):
-            raise ValueError(f"{directory} is a validation-only map: never train on it")
+def training_world_specs(
+    config: PredictorTrainingConfig, kth_dirs: list[str], ipa_dirs: list[str] = ()
+) -> list[str]:
+    """World specs to explore: procedural plans, HouseExpo corridor worlds, then the KTH and
+    IPA map directories given (a validation map among them is refused)."""
+    for directory in [*kth_dirs, *ipa_dirs]:
+        check_trainable(os.path.basename(os.path.normpath(directory)))
     first = config.first_procedural_seed
     prefix = generated_prefix(config.free_outside_plans)
-    return [f"{prefix}{seed}" for seed in range(first, first + config.procedural_worlds)] + list(
-        kth_dirs
-    )
+    procedural = [f"{prefix}{seed}" for seed in range(first, first + config.procedural_worlds)]
+    first = config.first_houseexpo_seed
+    houseexpo = [
+        f"{CORRIDOR_PREFIX}{seed}" for seed in range(first, first + config.houseexpo_worlds)
+    ]
+    return procedural + houseexpo + list(kth_dirs) + list(ipa_dirs)
+
+
+def check_trainable(world_name: str) -> None:
+    """Refuse (ValueError) a validation map, or another rendering of its building."""
+    if never_train_on(world_name):
+        raise ValueError(f"{world_name} is a validation map (mapex.worlds.data): never train on it")
 
 
 def snapshots_at(
@@ -82,8 +91,9 @@ def explore_snapshots(spec: str, config: PredictorTrainingConfig) -> list[np.nda
     """Observed maps every `snapshot_every_steps` steps of explorations of world `spec`
     (until an exploration ends, so no map is repeated)."""
     world = load_world(spec)
+    check_trainable(world.name)
     starts = start_poses(world, ExplorationConfig().world.start_clearance_cells)
-    n_starts = config.starts_per_world if is_procedural(world) else config.kth_starts_per_world
+    n_starts = starts_per_world(world.name, config)
     every = config.snapshot_every_steps
     times = list(range(every // 2, config.snapshot_steps, every))
     collected = []
@@ -94,6 +104,14 @@ def explore_snapshots(spec: str, config: PredictorTrainingConfig) -> list[np.nda
         end = config.snapshot_steps if finished_at is None else finished_at
         collected += [snapshots[t] for t in times if t <= end]
     return collected
+
+
+def starts_per_world(world_name: str, config: PredictorTrainingConfig) -> int:
+    """How many start corners to explore a training world from (by its source)."""
+    return {
+        "kth": config.kth_starts_per_world,
+        "ipa": config.ipa_starts_per_world,
+    }.get(world_source(world_name), config.starts_per_world)
 
 
 def collect_snapshots(
@@ -115,12 +133,17 @@ def collect_snapshots(
 class CropSampler:
     """Random training crops (input one-hot source, target walls, loss mask) from snapshots."""
 
-    def __init__(self, snapshots: SnapshotSet, config: PredictorTrainingConfig) -> None:
+    def __init__(
+        self,
+        snapshots: SnapshotSet,
+        config: PredictorTrainingConfig,
+        sources: tuple[str, ...] = SOURCES,
+    ) -> None:
         self.snapshots = snapshots
         self.crop = config.crop_cells
         self.overhang = config.edge_overhang_cells
         self.frontier_share = config.frontier_share
-        self.probabilities = snapshot_probabilities(snapshots, config.kth_share)
+        self.probabilities = snapshot_probabilities(snapshots, source_shares(config, sources))
         margin = MetricsConfig().footprint_margin_cells
         self.footprints = [building_footprint(w.valid_space, margin) for w in snapshots.worlds]
 
@@ -174,13 +197,33 @@ class CropSampler:
         return out
 
 
-def snapshot_probabilities(snapshots: SnapshotSet, kth_share: float) -> np.ndarray:
-    """Sampling probability per snapshot: KTH snapshots share `kth_share`, procedural the rest."""
-    kth_world = np.array([not is_procedural(w) for w in snapshots.worlds])
-    is_kth = kth_world[snapshots.world_of]
-    if is_kth.all() or not is_kth.any():
-        return np.full(len(is_kth), 1.0 / len(is_kth))
-    return np.where(is_kth, kth_share / is_kth.sum(), (1.0 - kth_share) / (~is_kth).sum())
+def source_shares(config: PredictorTrainingConfig, sources: tuple[str, ...] = SOURCES) -> dict:
+    """The crop share of each of `sources` (the others get none), from `config`."""
+    unknown = sorted(set(sources) - set(SOURCES))
+    if unknown:
+        raise ValueError(f"unknown data source(s) {unknown}: choose from {', '.join(SOURCES)}")
+    return {
+        source: getattr(config, f"{source}_share") if source in sources else 0.0
+        for source in SOURCES
+    }
+
+
+def snapshot_probabilities(snapshots: SnapshotSet, shares: dict[str, float]) -> np.ndarray:
+    """Sampling probability per snapshot: each source present gets its share (renormalised
+    over the sources present), split evenly between its snapshots."""
+    source_of_world = np.array([world_source(world.name) for world in snapshots.worlds])
+    source = source_of_world[snapshots.world_of]
+    weights = np.zeros(len(source))
+    for name, share in shares.items():
+        here = source == name
+        if here.any() and share > 0:
+            weights[here] = share / here.sum()
+    if weights.sum() <= 0:
+        present = ", ".join(sorted(set(source.tolist())))
+        raise ValueError(
+            f"no training snapshot from a source with a positive share (have: {present})"
+        )
+    return weights / weights.sum()
 
 
 def augment(rng: np.random.Generator, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:

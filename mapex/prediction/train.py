@@ -1,10 +1,11 @@
 """`python -m mapex.prediction.train`: train the LaMa-style ensemble and write its weights.
 
-G is trained on every snapshot; G_1..G_3 each fine-tune it on one source of the data (one KTH
-training map each, then the procedural plans), or on a disjoint third of the worlds with `--set
-member_split=thirds` (docs/algorithms.md#prediction). G's weights from before that are kept
-(g-base.pt); after the members, G is polished with a soft IoU added to its loss (`polish_main`).
-Snapshots come from exploring procedural floor plans and the two KTH maps allowed for training.
+G is pretrained on every snapshot (g-base.pt); G_1..G_3 each fine-tune those weights on their
+own sources of data (HouseExpo houses, IPA buildings, KTH floors and procedural plans), or on a
+disjoint third of the worlds with `--set member_split=thirds` (docs/prediction.md). After the
+members, G is fine-tuned on the office-like sources with a soft IoU added to its loss
+(`polish_main`). Snapshots come from exploring procedural floor plans, HouseExpo corridor worlds,
+the IPA training maps and the two KTH maps allowed for training; validation maps are refused.
 Checkpoints are written as training goes, so an interrupted run resumes with `--resume`. Once G
 is polished, its decision threshold is chosen on training snapshots
 (`mapex.prediction.calibration`); `--calibrate-only` does that alone for the G already in
@@ -46,30 +47,48 @@ from mapex.prediction.weights import (
     read_metadata,
     save_weights,
 )
-from mapex.worlds import World, WorldError, is_procedural
-
-DEFAULT_KTH_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "kth_dev"
-TRAINING_KTH_MAPS = ("50015847", "50015848")
+from mapex.worlds import WorldError
+from mapex.worlds.data import (
+    IPA_DIR,
+    IPA_TRAINING_MAPS,
+    KTH_DEV_DIR,
+    KTH_TRAINING_MAPS,
+    SOURCES,
+    world_source,
+)
 
 
 def member_snapshots(
-    snapshots: SnapshotSet, member: int, split: MemberSplit = "thirds"
+    snapshots: SnapshotSet,
+    member: int,
+    split: MemberSplit = "thirds",
+    sources: tuple[str, ...] = (),
 ) -> SnapshotSet:
     """G (member 0) sees every snapshot. G_k sees, with "thirds", the worlds whose index is
-    k - 1 modulo 3; with "by_source", the k-th of `world_sources`."""
+    k - 1 modulo 3; with "by_source", the worlds of `member_source_set(sources, k)`."""
     if member == 0:
         return snapshots
     if split == "thirds":
         return snapshots.subset(snapshots.world_of % 3 == member - 1)
-    source = world_sources(snapshots.worlds)[member - 1]
-    return snapshots.subset(np.isin(snapshots.world_of, source))
+    wanted = member_source_set(sources, member)
+    worlds = [i for i, w in enumerate(snapshots.worlds) if world_source(w.name) in wanted]
+    return snapshots.subset(np.isin(snapshots.world_of, worlds))
 
 
-def world_sources(worlds: list[World]) -> list[list[int]]:
-    """World indices by where they come from: each KTH map alone, then all procedural plans."""
-    kth = [[i] for i, world in enumerate(worlds) if not is_procedural(world)]
-    procedural = [i for i, world in enumerate(worlds) if is_procedural(world)]
-    return kth + ([procedural] if procedural else [])
+def member_source_set(sources: tuple[str, ...], member: int) -> tuple[str, ...]:
+    """The data sources of G_`member` (1-based) in a `member_sources` setting ("+" joins)."""
+    if len(sources) != len(MEMBER_NAMES) - 1:
+        raise ValueError(
+            f"member_sources={','.join(sources)}: give one entry per member "
+            f"({len(MEMBER_NAMES) - 1}), sources joined by '+'"
+        )
+    wanted = tuple(part.strip() for part in sources[member - 1].split("+"))
+    unknown = [part for part in wanted if part not in SOURCES]
+    if unknown:
+        raise ValueError(
+            f"member_sources: unknown source(s) {unknown}: choose from {', '.join(SOURCES)}"
+        )
+    return wanted
 
 
 def masked_loss(
@@ -110,6 +129,7 @@ class _Schedule:
     soft_iou_weight: float
     seed: int  # of the weights' random draws and of the batch stream
     checkpoint: Path
+    sources: tuple[str, ...] = SOURCES  # whose crops it trains on
 
 
 def train_member(
@@ -123,7 +143,7 @@ def train_member(
     """Train one member with checkpoints; write its float16 weights; return their path.
     G's are its base weights (`base_weights`), which `polish_main` turns into g.pt."""
     name = MEMBER_NAMES[member]
-    data = member_snapshots(snapshots, member, config.member_split)
+    data = member_snapshots(snapshots, member, config.member_split, config.member_sources)
     schedule = _Schedule(
         label=f"train {name}",
         steps=config.main_steps if member == 0 else config.member_steps,
@@ -190,6 +210,7 @@ def _polish_schedule(config: PredictorTrainingConfig, out_dir: Path, run: int) -
         soft_iou_weight=config.polish_soft_iou_weight,
         seed=config.seed + len(MEMBER_NAMES) + run,
         checkpoint=out_dir / "checkpoints" / f"g-polish{suffix}.ckpt",
+        sources=config.polish_sources,
     )
 
 
@@ -234,7 +255,7 @@ def _fit(
         torch.set_rng_state(state["torch_rng"])
         start, elapsed = state["step"], state["elapsed_s"]
     batches = batch_loader(
-        CropSampler(data, config),
+        CropSampler(data, config, schedule.sources),
         schedule.seed,
         config.batch_size,
         first_batch=start,
@@ -342,13 +363,20 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--kth-dir",
         type=Path,
-        default=DEFAULT_KTH_DIR,
+        default=KTH_DEV_DIR,
         help="folder holding the KTH training maps 50015847 and 50015848 (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--ipa-dir",
+        type=Path,
+        default=IPA_DIR,
+        help="folder holding the IPA training maps (default: %(default)s; --set use_ipa=false "
+        "leaves them out)",
     )
     parser.add_argument(
         "--no-kth",
         action="store_true",
-        help="train on procedural plans only (with --set member_split=thirds)",
+        help="leave the KTH maps out (with --set member_split=thirds or other member_sources)",
     )
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoints")
     parser.add_argument(
@@ -386,10 +414,11 @@ def main(argv: list[str] | None = None) -> int:
             load_member(_polished_from(args))  # fail before collecting snapshots
             members = []
         _check_main_for_members(members, config, args.out)
-        kth_dirs = [] if args.no_kth else [str(args.kth_dir / m) for m in TRAINING_KTH_MAPS]
-        specs = training_world_specs(config, kth_dirs)
+        kth_dirs = [] if args.no_kth else [str(args.kth_dir / m) for m in KTH_TRAINING_MAPS]
+        ipa_dirs = [str(args.ipa_dir / m) for m in IPA_TRAINING_MAPS] if config.use_ipa else []
+        specs = training_world_specs(config, kth_dirs, ipa_dirs)
         _check_enough_worlds(members, len(specs))
-        _check_sources(members, config, len(kth_dirs))
+        _check_sources(members, config, specs)
         _warn_if_emulated_bfloat16(device, config)
         print(f"collecting snapshots from {len(specs)} worlds ...", file=sys.stderr)
         snapshots = collect_snapshots(specs, config)
@@ -459,15 +488,21 @@ def _check_enough_worlds(members: list[int], n_worlds: int) -> None:
         )
 
 
-def _check_sources(members: list[int], config: PredictorTrainingConfig, n_kth: int) -> None:
-    """Refuse, before any work, a by-source split without one source per member."""
-    n_sources = n_kth + (config.procedural_worlds > 0)
-    if config.member_split == "by_source" and any(members) and n_sources != len(MEMBER_NAMES) - 1:
-        raise ValueError(
-            f"member_split=by_source gives each of g1..g3 one source, but there are {n_kth} "
-            f"KTH map(s) and {'' if config.procedural_worlds else 'no '}procedural plans: "
-            "give both KTH training maps and procedural_worlds > 0, or member_split=thirds"
-        )
+def _check_sources(members: list[int], config: PredictorTrainingConfig, specs: list[str]) -> None:
+    """Refuse, before any work, a by-source split in which a member has no data, and a
+    polish with no office-like data."""
+    present = {world_source(Path(spec).name) for spec in specs}
+    wanted = [("polish", config.polish_sources)] if 0 in members else []
+    if config.member_split == "by_source":
+        wanted += [
+            (MEMBER_NAMES[k], member_source_set(config.member_sources, k)) for k in members if k
+        ]
+    for name, sources in wanted:
+        if not present & set(sources):
+            raise ValueError(
+                f"{name} trains on {'+'.join(sources)}, but no training world comes from there "
+                f"(have: {', '.join(sorted(present))}): give those maps or other sources"
+            )
 
 
 def _names(members: list[int]) -> str:

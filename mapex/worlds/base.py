@@ -10,6 +10,8 @@ from mapex.grid import RESOLUTION_M
 
 GENERATED_PREFIX = "generated:"  # world names of procedural floor plans
 OPEN_GENERATED_PREFIX = "generated-open:"  # the same plans with free space outside
+HOUSE_PREFIX = "houseexpo:"  # one HouseExpo house
+CORRIDOR_PREFIX = "houseexpo-corridor:"  # HouseExpo houses along a corridor
 
 
 def generated_prefix(free_outside: bool) -> str:

@@ -79,3 +79,18 @@ class ProceduralConfig:
 OPEN_PLAN_CONFIG = ProceduralConfig(
     wall_thickness_min=3, wall_thickness_max=4, outer_wall_thickness=2, free_outside=True
 )
+
+
+@dataclass(frozen=True)
+class HouseExpoConfig:
+    """Office-sized worlds made of HouseExpo houses along a corridor
+    (`houseexpo-corridor:<seed>`, mapex.worlds.houseexpo); sizes in 0.1 m cells."""
+
+    houses_per_world: int = 6  # half above the corridor, half below
+    max_house_side_cells: int = 220  # larger plans are passed over
+    min_house_side_cells: int = 40
+    corridor_width_cells: int = 20  # 2 m
+    door_width_cells: int = 10  # 1 m, cut through a house's outer wall to the corridor
+    max_door_depth_cells: int = 6  # thickest outer wall a door may be cut through
+    margin_cells: int = 2  # solid wall between the houses and the map border
+    max_draws: int = 200  # plans drawn per world before giving up

@@ -11,6 +11,9 @@ from mapex.worlds import load_world
 SMALL = NetworkConfig(channels=16, n_blocks=1, downscale=4, refine_channels=4)
 TINY = PredictorTrainingConfig(
     procedural_worlds=1,
+    houseexpo_worlds=0,
+    use_ipa=False,
+    member_sources=("procedural",) * 3,
     snapshot_steps=120,
     snapshot_every_steps=40,
     starts_per_world=1,
@@ -26,10 +29,17 @@ TINY = PredictorTrainingConfig(
 )
 
 
+# Command-line flags that leave out every source but the procedural plans (fast tests).
+PROCEDURAL_ONLY = ["--no-kth", "--set", "houseexpo_worlds=0", "--set", "use_ipa=false"]
+
+
 def tiny_overrides() -> list[str]:
     """`--set` arguments that make the training command's data, network and polish TINY's."""
     fields = {
         "procedural_worlds": TINY.procedural_worlds,
+        "houseexpo_worlds": TINY.houseexpo_worlds,
+        "use_ipa": TINY.use_ipa,
+        "member_sources": ",".join(TINY.member_sources),
         "snapshot_steps": TINY.snapshot_steps,
         "snapshot_every_steps": TINY.snapshot_every_steps,
         "starts_per_world": TINY.starts_per_world,

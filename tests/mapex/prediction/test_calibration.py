@@ -17,6 +17,7 @@ from mapex.prediction.calibration import (
     iou_by_threshold,
     logit_bias,
 )
+from mapex.prediction.dataset import source_shares
 from mapex.prediction.learned import LearnedEnsemble
 from mapex.prediction.network import LamaGenerator
 from mapex.prediction.weights import (
@@ -91,7 +92,7 @@ def test_calibration_picks_the_threshold_with_the_best_iou(snapshots):
     ious = calibration.mean_iou_by_threshold
     assert ious["0.250"] == 1.0 and ious["0.500"] == 0.0 and 0 < ious["0.050"] < 1
     assert calibration.snapshots == len(snapshots.observed)
-    assert calibration.kth_share == config.kth_share  # the sample's mix is on record
+    assert calibration.shares == source_shares(config, config.polish_sources)  # mix on record
 
 
 def test_the_stored_bias_shifts_only_that_members_logits(tmp_path):

@@ -5,10 +5,11 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from tiny_training import SMALL, TINY, tiny_overrides, tiny_snapshots
+from tiny_training import PROCEDURAL_ONLY, SMALL, TINY, tiny_overrides, tiny_snapshots
 
 import mapex.prediction.train as train
 from mapex.config import ConfigError, apply_overrides
+from mapex.prediction.config import PredictorTrainingConfig
 from mapex.prediction.dataset import (
     CropSampler,
     SnapshotSet,
@@ -145,7 +146,7 @@ def test_the_network_size_is_set_from_the_command_line(snapshots, tmp_path):
 
 
 def test_validation_maps_are_refused_for_training():
-    with pytest.raises(ValueError, match="validation-only"):
+    with pytest.raises(ValueError, match="validation map"):
         training_world_specs(TINY, ["../shared/data/kth_dev/50052748"])
 
 
@@ -158,21 +159,43 @@ def test_members_train_on_disjoint_worlds():
     assert set(train.member_snapshots(data, 0).world_of) == {0, 1, 2}
 
 
-def test_by_source_members_train_on_one_kth_map_each_and_the_procedural_plans():
-    kth = [World(name, np.zeros((4, 4), bool), np.ones((4, 4), bool)) for name in ("a", "b")]
-    worlds = [load_world("generated:0"), kth[0], load_world("generated-open:1"), kth[1]]
-    data = SnapshotSet(worlds, [np.zeros((4, 4), dtype=np.uint8)] * 8, np.repeat(np.arange(4), 2))
-    seen = [set(train.member_snapshots(data, k, "by_source").world_of) for k in (1, 2, 3)]
-    assert seen == [{1}, {3}, {0, 2}]
+def _named_world(name: str) -> World:
+    return World(name, np.zeros((4, 4), bool), np.ones((4, 4), bool))
 
 
-def test_by_source_without_three_sources_is_refused_before_any_work(tmp_path, capsys):
-    status = train.main(["--out", str(tmp_path), "--no-kth", "--set", "member_split=by_source"])
+def test_by_source_members_train_on_houseexpo_ipa_and_kth_with_procedural():
+    names = ["generated-open:1", "houseexpo-corridor:0", "office_a", "50015847", "houseexpo:7"]
+    data = SnapshotSet(
+        [_named_world(n) for n in names],
+        [np.zeros((4, 4), dtype=np.uint8)] * 10,
+        np.repeat(np.arange(5), 2),
+    )
+    sources = PredictorTrainingConfig().member_sources
+    seen = [set(train.member_snapshots(data, k, "by_source", sources).world_of) for k in (1, 2, 3)]
+    assert seen == [{1, 4}, {2}, {0, 3}]
+
+
+@pytest.mark.parametrize(
+    ("setting", "message"),
+    [
+        ("member_sources=ipa,kth", "member_sources=ipa,kth: give one entry per member (3)"),
+        ("member_sources=ipa,kth,moon", "member_sources: unknown source(s) ['moon']"),
+    ],
+)
+def test_bad_member_sources_are_one_line_errors(setting, message, tmp_path, capsys):
+    status = train.main(["--out", str(tmp_path), *PROCEDURAL_ONLY, "--set", setting])
+    error = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(error) == 1 and message in error[0]
+
+
+def test_by_source_without_a_members_source_is_refused_before_any_work(tmp_path, capsys):
+    status = train.main(
+        ["--out", str(tmp_path), *PROCEDURAL_ONLY, "--set", "member_split=by_source"]
+    )
     error = capsys.readouterr().err.strip().splitlines()
     assert status == 2 and error == [
-        "mapex.prediction.train: error: member_split=by_source gives each of g1..g3 one "
-        "source, but there are 0 KTH map(s) and procedural plans: give both KTH training maps "
-        "and procedural_worlds > 0, or member_split=thirds"
+        "mapex.prediction.train: error: g1 trains on houseexpo, but no training world comes "
+        "from there (have: procedural): give those maps or other sources"
     ]
 
 
@@ -199,7 +222,7 @@ def test_members_use_their_own_loss_and_only_the_polish_adds_soft_iou(
 def test_polish_only_polishes_the_base_in_out_and_calibrates(snapshots, tmp_path, capsys):
     base_path = _train(snapshots, TINY, tmp_path)
     base = load_member(base_path).state_dict()
-    argv = ["--polish-only", "--out", str(tmp_path), "--no-kth", *tiny_overrides()]
+    argv = ["--polish-only", "--out", str(tmp_path), *PROCEDURAL_ONLY, *tiny_overrides()]
     assert train.main(argv) == 0
     polished = load_member(tmp_path / "g.pt").state_dict()
     assert not torch.equal(polished["stem.1.weight"], base["stem.1.weight"])
@@ -216,7 +239,7 @@ def test_polish_only_polishes_the_base_in_out_and_calibrates(snapshots, tmp_path
     ],
 )
 def test_polish_only_refusals_are_one_line_errors(flags, message, tmp_path, capsys):
-    status = train.main([*flags, "--out", str(tmp_path), "--no-kth"])
+    status = train.main([*flags, "--out", str(tmp_path), *PROCEDURAL_ONLY])
     error = capsys.readouterr().err.strip().splitlines()
     assert status == 2 and len(error) == 1 and message in error[0]
 
@@ -306,7 +329,7 @@ def test_mean_state_dict_averages_floats_and_keeps_counters():
     ],
 )
 def test_impossible_schedules_are_one_line_errors(setting, message, tmp_path, capsys):
-    status = train.main(["--out", str(tmp_path), "--no-kth", "--set", setting])
+    status = train.main(["--out", str(tmp_path), *PROCEDURAL_ONLY, "--set", setting])
     error = capsys.readouterr().err.strip().splitlines()
     assert status == 2 and error == [f"mapex.prediction.train: error: {message}"]
 
@@ -371,7 +394,7 @@ def test_a_main_model_of_another_size_is_refused(snapshots, tmp_path):
 
 
 def test_members_without_g_are_refused_before_any_work(tmp_path, capsys):
-    status = train.main(["--members", "g2,g3", "--out", str(tmp_path), "--no-kth"])
+    status = train.main(["--members", "g2,g3", "--out", str(tmp_path), *PROCEDURAL_ONLY])
     error = capsys.readouterr().err.strip().splitlines()
     assert status == 2 and error == [
         "mapex.prediction.train: error: g2, g3 would start from G's weights, "
@@ -381,7 +404,7 @@ def test_members_without_g_are_refused_before_any_work(tmp_path, capsys):
 
 
 def test_too_few_worlds_for_the_members_are_refused_before_any_work(tmp_path, capsys):
-    argv = ["--out", str(tmp_path), "--no-kth", "--set", "procedural_worlds=2"]
+    argv = ["--out", str(tmp_path), *PROCEDURAL_ONLY, "--set", "procedural_worlds=2"]
     status = train.main(argv)
     error = capsys.readouterr().err.strip().splitlines()
     assert status == 2 and error == [
