@@ -9,6 +9,8 @@ import typing
 from dataclasses import dataclass, field
 from typing import Literal
 
+from mapex.worlds.data import IPA_TRAINING_MAPS
+
 Precision = Literal["float32", "bfloat16"]
 
 
@@ -44,7 +46,8 @@ class PredictorTrainingConfig:
     first_procedural_seed: int = 1000
     houseexpo_worlds: int = 48  # houseexpo-corridor:<first_houseexpo_seed + i>
     first_houseexpo_seed: int = 0
-    use_ipa: bool = True  # the IPA training maps (mapex.worlds.data.IPA_TRAINING_MAPS)
+    use_ipa: bool = True  # explore the IPA maps `ipa_maps` (in --ipa-dir)
+    ipa_maps: tuple[str, ...] = IPA_TRAINING_MAPS
     snapshot_methods: tuple[str, ...] = ("nearest", "observed_map")
     starts_per_world: int = 2  # procedural plans and HouseExpo worlds
     ipa_starts_per_world: int = 2
@@ -111,6 +114,7 @@ class PredictorEvaluationConfig:
 
     snapshot_times: tuple[int, ...] = (100, 300, 600)
     near_known_cells: int = 10  # 1 m: unknown cells this close to a known one are "near"
+    far_cells: int = 20  # 2 m: the variance beyond this distance from the known map is "far"
     target_margin_iou: float = 0.10  # the lead over the classical IoU that G should reach
 
 

@@ -48,7 +48,7 @@ def training_world_specs(
     """World specs to explore: procedural plans, HouseExpo corridor worlds, then the KTH and
     IPA map directories given (a validation map among them is refused)."""
     for directory in [*kth_dirs, *ipa_dirs]:
-        check_trainable(os.path.basename(os.path.normpath(directory)))
+        check_trainable(spec_name(directory))
     first = config.first_procedural_seed
     prefix = generated_prefix(config.free_outside_plans)
     procedural = [f"{prefix}{seed}" for seed in range(first, first + config.procedural_worlds)]
@@ -57,6 +57,11 @@ def training_world_specs(
         f"{CORRIDOR_PREFIX}{seed}" for seed in range(first, first + config.houseexpo_worlds)
     ]
     return procedural + houseexpo + list(kth_dirs) + list(ipa_dirs)
+
+
+def spec_name(spec: str) -> str:
+    """The name a world spec's world will have (a map directory's own name)."""
+    return os.path.basename(os.path.normpath(spec))
 
 
 def check_trainable(world_name: str) -> None:
@@ -90,8 +95,8 @@ def snapshots_at(
 def explore_snapshots(spec: str, config: PredictorTrainingConfig) -> list[np.ndarray]:
     """Observed maps every `snapshot_every_steps` steps of explorations of world `spec`
     (until an exploration ends, so no map is repeated)."""
+    check_trainable(spec_name(spec))
     world = load_world(spec)
-    check_trainable(world.name)
     starts = start_poses(world, ExplorationConfig().world.start_clearance_cells)
     n_starts = starts_per_world(world.name, config)
     every = config.snapshot_every_steps

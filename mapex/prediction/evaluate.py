@@ -1,10 +1,13 @@
 """`python -m mapex.prediction.evaluate`: how good are the predictions, on their own?
 
-On validation maps (never trained on), observed maps are taken from nearest-frontier
-runs at t = 100, 300, 600 from all 4 starts. For each, the occupied-class IoU over
-the *unknown* cells inside the building footprint (the part that is actually
-predicted) is measured for G, for the classical predictor and for "unknown = free",
-and the ensemble variance is scored as a detector of G's wrong cells (AUROC). A second
+On the six validation maps (2 KTH floors, 4 IPA buildings; never trained on), observed maps
+are taken from nearest-frontier runs at t = 100, 300, 600 from all 4 starts. For each, the
+occupied-class IoU over the *unknown* cells inside the building footprint (the part that is
+actually predicted) is measured for G, for a reference G (by default the previously shipped
+v1 weights), for the classical predictor and for "unknown = free"; the ensemble variance is
+scored as a detector of G's wrong cells (AUROC), and the share of the total variance that lies
+in unknown cells far (over 2 m) from any known cell says whether the members disagree where
+the map is unknown, or only along what is seen. The first table is per map; a second
 table splits both by distance from the known map: near it, walls continue what is seen;
 far from it, the predictor has to guess whole rooms. A third table sets G against a
 ceiling: a perfect predictor that paints walls only near the known map (the ground
@@ -39,9 +42,9 @@ from mapex.prediction.dataset import snapshots_at
 from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
 from mapex.worlds import WorldError, load_world, start_poses
 from mapex.worlds.base import World
+from mapex.worlds.data import validation_map_dirs
 
-KTH_DEV_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "kth_dev"
-VALIDATION_MAPS = ("50037764_PLAN1", "50052748")
+REFERENCE_WEIGHTS_DIR = WEIGHTS_DIR / "v1"  # the ensemble shipped before predictor v2
 
 
 @dataclass
@@ -52,6 +55,7 @@ class CellScores:
     iou_classical: float
     iou_unknown_free: float
     auroc: float
+    iou_reference: float = float("nan")  # the reference G's (nan without one)
 
 
 @dataclass
@@ -67,6 +71,7 @@ class SnapshotScore:
     far: CellScores
     local_ceiling: float  # IoU of the perfect near-only predictor (local_ceiling_iou)
     g_inside_only: float  # G's IoU with its walls outside the building taken away
+    far_variance_share: float  # of the map's total variance, in unknown cells > far_cells away
 
 
 def auroc(scores: np.ndarray, labels: np.ndarray) -> float:
@@ -85,15 +90,33 @@ def score_cells(
     learned: EnsemblePrediction,
     classical_main: np.ndarray,
     threshold: float,
+    reference_main: np.ndarray | None = None,
 ) -> CellScores:
-    """IoU of G, of classical and of unknown = free, and the AUROC, over `cells` (bool)."""
+    """IoU of G, of classical, of unknown = free and of a reference G (if given), and the
+    AUROC, over `cells` (bool)."""
     wrong = (learned.main >= threshold) != truth
+    reference = (
+        float("nan")
+        if reference_main is None
+        else occupied_iou(reference_main >= threshold, truth, cells)
+    )
     return CellScores(
         occupied_iou(learned.main >= threshold, truth, cells),
         occupied_iou(classical_main >= threshold, truth, cells),
         occupied_iou(np.zeros_like(truth), truth, cells),
         auroc(learned.variance[cells], wrong[cells]),
+        reference,
     )
+
+
+def far_variance_share(variance: np.ndarray, observed: np.ndarray, far_cells: int) -> float:
+    """Share of the map's total ensemble variance that lies in unknown cells more than
+    `far_cells` from any known cell (nan when the variance is zero everywhere)."""
+    total = float(variance.sum(dtype=np.float64))
+    if total <= 0:
+        return float("nan")
+    far = ~near_known(observed, far_cells)
+    return float(variance[far].sum(dtype=np.float64)) / total
 
 
 def near_known(observed: np.ndarray, within_cells: int) -> np.ndarray:
@@ -119,10 +142,16 @@ def evaluate(
     figure: Path | None,
     weights_dir: Path = WEIGHTS_DIR,
     precision: Precision = "float32",
+    reference_dir: Path | None = REFERENCE_WEIGHTS_DIR,
 ) -> list[SnapshotScore]:
-    """Score every (map, start, time) snapshot of the ensemble in `weights_dir`, run at
-    `precision`; optionally draw one of them."""
+    """Score every (map, start, time) snapshot of the ensemble in `weights_dir` (and the G of
+    `reference_dir`, if given), run at `precision`; optionally draw one of them."""
     learned = make_predictor("lama", weights_dir=weights_dir, precision=precision)
+    reference = (
+        None
+        if reference_dir is None
+        else make_predictor("lama", weights_dir=reference_dir, precision=precision)
+    )
     classical = make_predictor("classical")
     config = ExplorationConfig()
     threshold = config.metrics.prediction_threshold
@@ -140,17 +169,23 @@ def evaluate(
             observed = snapshots[t]
             prediction = learned.predict(observed)
             classical_main = classical.predict_main(observed)
+            reference_main = None if reference is None else reference.predict_main(observed)
             cells = (observed == UNKNOWN) & footprint
             near = near_known(observed, settings.near_known_cells)
             split = [cells, cells & near, cells & ~near]
             values = [
-                score_cells(world.occupancy, part, prediction, classical_main, threshold)
+                score_cells(
+                    world.occupancy, part, prediction, classical_main, threshold, reference_main
+                )
                 for part in split
             ]
             ceiling = local_ceiling_iou(world.occupancy, cells, near)
             walls_g = (prediction.main >= threshold) & ~outside_building(world)
             inside_only = occupied_iou(walls_g, world.occupancy, cells)
-            scores.append(SnapshotScore(world.name, start_index, t, *values, ceiling, inside_only))
+            far_share = far_variance_share(prediction.variance, observed, settings.far_cells)
+            scores.append(
+                SnapshotScore(world.name, start_index, t, *values, ceiling, inside_only, far_share)
+            )
             if figure is not None and (map_dir, start_index, t) == drawn:
                 draw_prediction(figure, world, observed, prediction, t)
     return scores
@@ -177,6 +212,34 @@ def draw_prediction(path: Path, world, observed, prediction: EnsemblePrediction,
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def format_map_table(scores: list[SnapshotScore], settings: PredictorEvaluationConfig) -> str:
+    """Markdown table per map (means over its starts and times), then over every map: G's
+    IoU against the reference G's, classical and unknown = free; the AUROC; the far share."""
+    metres = settings.far_cells * RESOLUTION_M
+    lines = [
+        "| map | IoU G | IoU reference G | IoU classical | IoU unknown=free | G - reference "
+        f"| AUROC var vs error | variance > {metres:g} m from known |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for world, group in _map_groups(scores):
+        g, c, free, area = _means([s.all for s in group])
+        reference = float(np.mean([s.all.iou_reference for s in group]))
+        far = float(np.nanmean([s.far_variance_share for s in group]))
+        lines.append(
+            f"| {world} | {g:.3f} | {reference:.3f} | {c:.3f} | {free:.3f} | {g - reference:+.3f} "
+            f"| {area:.3f} | {far:.3f} |"
+        )
+    return "\n".join(lines)
+
+
+def _map_groups(scores: list[SnapshotScore]) -> list[tuple[str, list[SnapshotScore]]]:
+    """Scores by map in order, then ("all", every score)."""
+    groups: dict[str, list[SnapshotScore]] = {}
+    for score in scores:
+        groups.setdefault(score.world, []).append(score)
+    return [*groups.items(), ("all", scores)]
 
 
 def format_table(scores: list[SnapshotScore]) -> str:
@@ -262,8 +325,9 @@ def main(argv: list[str] | None = None) -> int:
         "--maps",
         nargs="+",
         type=Path,
-        default=[KTH_DEV_DIR / name for name in VALIDATION_MAPS],
-        help="KTH map directories (default: the two validation maps)",
+        default=validation_map_dirs(),
+        help="map directories in the KTH format (default: the six validation maps, "
+        "mapex.worlds.data)",
     )
     defaults = PredictorEvaluationConfig()
     parser.add_argument(
@@ -277,16 +341,26 @@ def main(argv: list[str] | None = None) -> int:
         help="the ensemble to score: a folder written by mapex.prediction.train --out "
         "(default: the shipped weights)",
     )
+    parser.add_argument(
+        "--reference-weights",
+        type=Path,
+        default=REFERENCE_WEIGHTS_DIR,
+        help="the ensemble whose G is compared (default: %(default)s, the v1 weights)",
+    )
+    parser.add_argument("--no-reference", action="store_true", help="compare with no reference G")
     add_precision_argument(parser)
     args = parser.parse_args(argv)
     settings = dataclasses.replace(defaults, snapshot_times=tuple(sorted(set(args.times))))
     if min(settings.snapshot_times) < 0:
         parser.error("--times must be >= 0")
     try:
-        scores = evaluate(args.maps, settings, args.figure, args.weights, args.precision)
+        reference = None if args.no_reference else args.reference_weights
+        scores = evaluate(args.maps, settings, args.figure, args.weights, args.precision, reference)
     except (WorldError, WeightsError) as error:
         print(f"mapex.prediction.evaluate: error: {error}", file=sys.stderr)
         return EXIT_USAGE
+    print(format_map_table(scores, settings))
+    print()
     print(format_table(scores))
     print()
     print(format_split_table(scores, settings.near_known_cells))

@@ -36,6 +36,7 @@ from mapex.prediction.dataset import (
     CropSampler,
     SnapshotSet,
     collect_snapshots,
+    spec_name,
     training_world_specs,
 )
 from mapex.prediction.network import LamaGenerator, autocast, emulated_bfloat16
@@ -50,7 +51,6 @@ from mapex.prediction.weights import (
 from mapex.worlds import WorldError
 from mapex.worlds.data import (
     IPA_DIR,
-    IPA_TRAINING_MAPS,
     KTH_DEV_DIR,
     KTH_TRAINING_MAPS,
     SOURCES,
@@ -415,7 +415,7 @@ def main(argv: list[str] | None = None) -> int:
             members = []
         _check_main_for_members(members, config, args.out)
         kth_dirs = [] if args.no_kth else [str(args.kth_dir / m) for m in KTH_TRAINING_MAPS]
-        ipa_dirs = [str(args.ipa_dir / m) for m in IPA_TRAINING_MAPS] if config.use_ipa else []
+        ipa_dirs = [str(args.ipa_dir / m) for m in config.ipa_maps] if config.use_ipa else []
         specs = training_world_specs(config, kth_dirs, ipa_dirs)
         _check_enough_worlds(members, len(specs))
         _check_sources(members, config, specs)
@@ -491,7 +491,7 @@ def _check_enough_worlds(members: list[int], n_worlds: int) -> None:
 def _check_sources(members: list[int], config: PredictorTrainingConfig, specs: list[str]) -> None:
     """Refuse, before any work, a by-source split in which a member has no data, and a
     polish with no office-like data."""
-    present = {world_source(Path(spec).name) for spec in specs}
+    present = {world_source(spec_name(spec)) for spec in specs}
     wanted = [("polish", config.polish_sources)] if 0 in members else []
     if config.member_split == "by_source":
         wanted += [

@@ -34,7 +34,7 @@ PROCEDURAL_ONLY = ["--no-kth", "--set", "houseexpo_worlds=0", "--set", "use_ipa=
 
 
 def tiny_overrides() -> list[str]:
-    """`--set` arguments that make the training command's data, network and polish TINY's."""
+    """`--set` arguments that make the training command's data, network and schedule TINY's."""
     fields = {
         "procedural_worlds": TINY.procedural_worlds,
         "houseexpo_worlds": TINY.houseexpo_worlds,
@@ -45,6 +45,11 @@ def tiny_overrides() -> list[str]:
         "starts_per_world": TINY.starts_per_world,
         "snapshot_methods": ",".join(TINY.snapshot_methods),
         "main_polish_steps": TINY.main_polish_steps,
+        "main_steps": TINY.main_steps,
+        "member_steps": TINY.member_steps,
+        "crop_cells": TINY.crop_cells,
+        "batch_size": TINY.batch_size,
+        "checkpoint_every_steps": TINY.checkpoint_every_steps,
         "precision": TINY.precision,
         **{f"network.{name}": value for name, value in vars(SMALL).items()},
     }

@@ -10,7 +10,9 @@ from mapex.prediction.evaluate import (
     CellScores,
     SnapshotScore,
     auroc,
+    far_variance_share,
     format_ceiling_table,
+    format_map_table,
     format_split_table,
     format_table,
     local_ceiling_iou,
@@ -62,11 +64,41 @@ def test_score_cells_judges_g_classical_and_unknown_free_on_the_same_cells():
     assert scores.auroc == 1.0  # G_1 and G_2 disagree exactly where G is wrong
 
 
-def _score(world: str, t: int, g: float, classical: float) -> SnapshotScore:
-    cells = CellScores(g, classical, 0.0, 0.6)
-    return SnapshotScore(
-        world, 0, t, cells, cells, CellScores(g / 2, 0.0, 0.0, 0.5), 2 * g, g + 0.1
+def test_score_cells_scores_the_reference_g_on_the_same_cells():
+    truth = np.array([[True, True, False, False]])
+    cells = np.array([[True, True, True, False]])
+    members = np.stack([np.array([[0.9, 0.1, 0.1, 0.9]], dtype=np.float32)] * 3)
+    reference = np.array([[0.9, 0.9, 0.9, 0.0]], dtype=np.float32)
+    scores = score_cells(truth, cells, EnsemblePrediction(members), reference, 0.5, reference)
+    assert scores.iou_reference == pytest.approx(2 / 3)
+    assert np.isnan(
+        score_cells(truth, cells, EnsemblePrediction(members), reference, 0.5).iou_reference
     )
+
+
+def test_far_variance_share_counts_only_unknown_cells_beyond_the_distance():
+    observed = np.full((1, 30), UNKNOWN, dtype=np.uint8)
+    observed[0, 0] = FREE
+    variance = np.zeros((1, 30), dtype=np.float32)
+    variance[0, 5] = 3.0  # 5 cells from the known cell: near
+    variance[0, 25] = 1.0  # 25 cells away: far
+    assert far_variance_share(variance, observed, 20) == pytest.approx(0.25)
+    assert np.isnan(far_variance_share(np.zeros_like(variance), observed, 20))
+
+
+def _score(world: str, t: int, g: float, classical: float) -> SnapshotScore:
+    cells = CellScores(g, classical, 0.0, 0.6, g - 0.1)
+    return SnapshotScore(
+        world, 0, t, cells, cells, CellScores(g / 2, 0.0, 0.0, 0.5), 2 * g, g + 0.1, 0.25
+    )
+
+
+def test_the_map_table_has_a_row_per_map_and_an_overall_mean():
+    scores = [_score("a", 100, 0.4, 0.2), _score("a", 300, 0.2, 0.2), _score("b", 300, 0.6, 0.3)]
+    table = format_map_table(scores, PredictorEvaluationConfig()).splitlines()
+    assert "variance > 2 m from known" in table[0]
+    assert table[2] == "| a | 0.300 | 0.200 | 0.200 | 0.000 | +0.100 | 0.600 | 0.250 |"
+    assert table[-1].startswith("| all | 0.400 | 0.300 | 0.233 |")
 
 
 def test_tables_have_a_row_per_map_and_time_and_an_overall_mean():

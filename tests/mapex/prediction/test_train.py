@@ -16,8 +16,9 @@ from mapex.prediction.dataset import (
     training_world_specs,
 )
 from mapex.prediction.network import OUTSIDE_MAP
-from mapex.prediction.weights import WeightsError, load_member, read_metadata
+from mapex.prediction.weights import MEMBER_NAMES, WeightsError, load_member, read_metadata
 from mapex.worlds import World, load_world
+from mapex.worlds.data import HOUSEEXPO_PLANS, IPA_DIR
 
 
 @pytest.fixture(scope="module")
@@ -420,3 +421,34 @@ def test_training_warns_once_where_bfloat16_is_emulated(emulated, monkeypatch, c
     warning = capsys.readouterr().err.strip().splitlines()
     assert len(warning) == int(emulated)
     assert all("--set precision=float32" in line for line in warning)
+
+
+def test_a_few_steps_train_every_member_on_houseexpo_ipa_and_procedural_worlds(tmp_path):
+    if not (HOUSEEXPO_PLANS.is_file() and (IPA_DIR / "freiburg_building101").is_dir()):
+        pytest.skip("../shared/data/houseexpo or ipa is not present")
+    sources = ["--set", "houseexpo_worlds=1", "--set", "use_ipa=true"]
+    sources += ["--set", "ipa_maps=freiburg_building101", "--set", "calibration_snapshots=4"]
+    sources += [
+        "--set",
+        "member_sources=houseexpo,ipa,procedural",
+        "--set",
+        "snapshot_every_steps=10",
+    ]
+    argv = ["--out", str(tmp_path), "--no-kth", *tiny_overrides(), *sources]
+    assert train.main(argv) == 0
+    worlds = {name: read_metadata(tmp_path / f"{name}.pt")["worlds"] for name in MEMBER_NAMES}
+    assert worlds["g"] == ["freiburg_building101", "generated-open:1000", "houseexpo-corridor:0"]
+    assert [worlds[name] for name in MEMBER_NAMES[1:]] == [
+        ["houseexpo-corridor:0"],
+        ["freiburg_building101"],
+        ["generated-open:1000"],
+    ]
+
+
+def test_a_validation_map_named_in_ipa_maps_is_refused_before_any_work(tmp_path, capsys):
+    argv = ["--out", str(tmp_path), *PROCEDURAL_ONLY, "--set", "use_ipa=true"]
+    assert train.main([*argv, "--set", "ipa_maps=office_a,NLB"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "mapex.prediction.train: error: NLB is a validation map (mapex.worlds.data): "
+        "never train on it"
+    )
