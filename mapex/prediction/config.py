@@ -64,8 +64,8 @@ class PredictorTrainingConfig:
     frontier_share: float = 0.75  # crops centred near a frontier, the rest anywhere
     edge_overhang_cells: int = 64  # how far a crop may hang over the map's border
     batch_size: int = 8
-    main_steps: int = 6000  # G's pretraining, on every source
-    member_steps: int = 1200  # G_1..G_3, each fine-tuning G's pretrained weights
+    main_steps: int = 8000  # G's pretraining, on every source
+    member_steps: int = 1500  # G_1..G_3, each fine-tuning G's pretrained weights
     members_from_main: bool = True  # G_1..G_3 fine-tune G (the paper's fine-tune one LaMa)
     # G_k's data: "by_source" = the k-th entry of member_sources ("+" joins sources);
     # "thirds" = the worlds whose index is k - 1 modulo 3.

@@ -227,11 +227,17 @@ def format_map_table(scores: list[SnapshotScore], settings: PredictorEvaluationC
         g, c, free, area = _means([s.all for s in group])
         reference = float(np.mean([s.all.iou_reference for s in group]))
         far = float(np.nanmean([s.far_variance_share for s in group]))
+        versus = "-" if np.isnan(reference) else f"{g - reference:+.3f}"
         lines.append(
-            f"| {world} | {g:.3f} | {reference:.3f} | {c:.3f} | {free:.3f} | {g - reference:+.3f} "
-            f"| {area:.3f} | {far:.3f} |"
+            f"| {world} | {g:.3f} | {_figure(reference)} | {c:.3f} | {free:.3f} | {versus} "
+            f"| {area:.3f} | {_figure(far)} |"
         )
     return "\n".join(lines)
+
+
+def _figure(value: float) -> str:
+    """A table cell: three decimals, or "-" for a figure that does not exist (nan)."""
+    return "-" if np.isnan(value) else f"{value:.3f}"
 
 
 def _map_groups(scores: list[SnapshotScore]) -> list[tuple[str, list[SnapshotScore]]]:

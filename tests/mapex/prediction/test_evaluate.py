@@ -143,3 +143,10 @@ def test_a_weights_folder_without_weights_is_a_one_line_error(tmp_path, capsys):
         f"mapex.prediction.evaluate: error: no weights file {tmp_path / 'g.pt'} "
         "(train with python -m mapex.prediction.train)"
     )
+
+
+def test_the_map_table_shows_a_dash_without_a_reference():
+    score = _score("a", 100, 0.4, 0.2)
+    score.all.iou_reference = float("nan")
+    row = format_map_table([score], PredictorEvaluationConfig()).splitlines()[2]
+    assert row == "| a | 0.400 | - | 0.200 | 0.000 | - | 0.600 | 0.250 |"
