@@ -12,9 +12,7 @@ from __future__ import annotations
 
 from mapex.worlds.base import (
     CORRIDOR_PREFIX,
-    GENERATED_PREFIX,
     HOUSE_PREFIX,
-    OPEN_GENERATED_PREFIX,
     World,
     WorldError,
     generated_prefix,
@@ -43,7 +41,6 @@ __all__ = [
     "WorldError",
     "generate_floor_plan",
     "generated_prefix",
-    "is_procedural",
     "load_kth_map",
     "load_world",
     "normalise_start",
@@ -76,11 +73,6 @@ def load_world(spec: str) -> World:
     if spec.startswith(CORRIDOR_PREFIX):
         return corridor_world(_parse_seed(spec[len(CORRIDOR_PREFIX) :]))
     return load_kth_map(spec)
-
-
-def is_procedural(world: World) -> bool:
-    """Whether `world` is a procedural floor plan (of either kind)."""
-    return world.name.startswith((GENERATED_PREFIX, OPEN_GENERATED_PREFIX))
 
 
 def _parse_seed(text: str, what: str = "generated seed") -> int:

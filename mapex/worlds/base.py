@@ -23,6 +23,11 @@ class WorldError(ValueError):
     """A world that cannot be loaded or generated; the message is one line naming the cause."""
 
 
+def one_line(error: BaseException) -> str:
+    """An exception's message on one line (its type's name if it has none), for WorldError."""
+    return " ".join(str(error).split()) or type(error).__name__
+
+
 @dataclass(frozen=True)
 class World:
     """A floor plan at 0.1 m per cell.

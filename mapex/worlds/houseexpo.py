@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from mapex.worlds.base import CORRIDOR_PREFIX, HOUSE_PREFIX, World, WorldError
+from mapex.worlds.base import CORRIDOR_PREFIX, HOUSE_PREFIX, World, WorldError, one_line
 from mapex.worlds.config import HouseExpoConfig
 from mapex.worlds.data import HOUSEEXPO_PLANS
 
@@ -58,16 +58,13 @@ def load_plans(path: Path = HOUSEEXPO_PLANS) -> HousePlans:
         raise WorldError(f"missing HouseExpo plans file: {path}")
     try:
         with np.load(path, allow_pickle=False) as archive:
-            missing = [key for key in PLAN_KEYS if key not in archive.files]
-            if missing:
-                raise WorldError(f"{path}: no {', '.join(missing)} array (expected {PLAN_KEYS})")
-            plans = HousePlans(*(archive[key] for key in PLAN_KEYS))
+            arrays = {key: archive[key] for key in PLAN_KEYS if key in archive.files}
     except (ValueError, OSError, EOFError, zipfile.BadZipFile) as error:
-        if isinstance(error, WorldError):
-            raise
-        raise WorldError(
-            f"not a loadable .npz file: {path} ({' '.join(str(error).split())})"
-        ) from None
+        raise WorldError(f"not a loadable .npz file: {path} ({one_line(error)})") from None
+    missing = [key for key in PLAN_KEYS if key not in arrays]
+    if missing:
+        raise WorldError(f"{path}: no {', '.join(missing)} array (expected {PLAN_KEYS})")
+    plans = HousePlans(*(arrays[key] for key in PLAN_KEYS))
     _check_plans(plans, path)
     return plans
 

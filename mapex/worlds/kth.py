@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapex.worlds.base import World, WorldError
+from mapex.worlds.base import World, WorldError, one_line
 
 OCCUPANCY_FILE = "occ_map.npy"
 VALID_SPACE_FILE = "valid_space.npy"
@@ -65,7 +65,7 @@ def _load_uint8_map(path: Path) -> np.ndarray:
     try:
         loaded = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError, zipfile.BadZipFile) as error:
-        raise WorldError(f"not a loadable .npy file: {path} ({_one_line(error)})") from None
+        raise WorldError(f"not a loadable .npy file: {path} ({one_line(error)})") from None
     if not isinstance(loaded, np.ndarray):
         loaded.close()  # an .npz archive
         raise WorldError(f"not a .npy array file: {path}")
@@ -82,7 +82,3 @@ def _check_wall_codes(codes: np.ndarray, path: Path) -> None:
     if bad.any():
         shown = np.unique(codes[bad])[:MAX_VALUES_SHOWN].tolist()
         raise WorldError(f"{path}: values {shown} besides {KTH_WALL} (wall) and {KTH_FREE} (free)")
-
-
-def _one_line(error: BaseException) -> str:
-    return " ".join(str(error).split()) or type(error).__name__
