@@ -2,7 +2,8 @@
 
 Measures, on one map (default: the largest development map, KTH 50015847):
 one LiDAR scan + integration; scoring 30 frontiers with `mapex`; one A* across
-the map; a full `nearest` episode. Prints each median next to its target.
+the map; the learned ensemble; one whole re-plan of `mapex` and `mapex_plus`; a full
+`nearest` episode. Prints each median next to its target.
 Benchmarks print figures; they never fail a test run.
 """
 
@@ -42,6 +43,7 @@ TARGETS_MS = {
     "nearest episode": 15000.0,
     "one member, whole map, 1 thread": 800.0,
     "four members, whole map, 2 processes": 1500.0,
+    "re-plan with prediction (mapex_plus)": 1000.0,
 }
 
 
@@ -204,6 +206,29 @@ def bench_learned(world, repeats: int) -> None:
         )
 
 
+def bench_replan(
+    world, config: ExplorationConfig, repeats: int, method_name: str, precision: str
+) -> None:
+    """One whole re-plan of `method_name` part-way through a run (t = 300): the learned
+    ensemble on the known area plus sensor range (in process, two threads, as `python -m
+    mapex run`), frontier clusters, cost map, reachability, scoring and the path to the goal."""
+    import torch
+
+    from mapex.prediction.learned import LearnedEnsemble
+
+    explorer = explored_state(world, config, steps=300)
+    explorer.method = make_method(method_name, config)
+    threads = torch.get_num_threads()
+    explorer.predictor = LearnedEnsemble(threads=2, precision=precision)
+    suffix = "" if precision == "float32" else f", {precision}"
+    report(
+        f"re-plan with prediction ({method_name}{suffix})",
+        median_ms(lambda: explorer.replan(300), repeats),
+        f"({len(explorer.frontiers)} frontiers, t = 300)",
+    )
+    torch.set_num_threads(threads)
+
+
 def bench_episode(world, config: ExplorationConfig, repeats: int, predictor_name: str) -> None:
     """A whole `nearest` episode as `python -m mapex run` runs it; the predictor only serves
     the IoU/TU metrics (G's whole-map prediction every 50 steps)."""
@@ -245,6 +270,9 @@ def main(argv: list[str] | None = None) -> int:
     bench_scoring(world, config, args.repeats)
     bench_astar(world, config, max(args.repeats // 5, 3))
     bench_learned(world, max(args.repeats // 10, 3))
+    for method_name in ("mapex", "mapex_plus"):
+        for precision in PRECISIONS:
+            bench_replan(world, config, max(args.repeats // 10, 3), method_name, precision)
     if args.episodes > 0:
         bench_episode(world, config, args.episodes, "classical")
         bench_episode(world, config, args.episodes, DEFAULT_PREDICTOR)

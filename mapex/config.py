@@ -82,6 +82,31 @@ class IgHectorConfig:
 
 
 @dataclass(frozen=True)
+class PathGainConfig:
+    """mapex_plus: gain along the path to a frontier, per unit path cost
+    (docs/algorithms.md#beyond-the-paper). Chosen on generated worlds and the trainable KTH
+    floors only."""
+
+    # beta in [0, 1]: a cell's worth is (1 - beta) x 1 (expected new area) + beta x V_t / mean
+    # V_t over unknown cells (ensemble disagreement); 0 = area only, 1 = variance only
+    variance_weight: float = 0.5
+    path_sample_cells: int = 10  # one viewpoint every 1 m of path (plus the frontier)
+    top_k: int = 8  # frontiers (best frontier-only score) whose path gain is computed
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.variance_weight <= 1.0:
+            raise ConfigError(
+                f"path_gain.variance_weight must be in [0, 1], got {self.variance_weight}"
+            )
+        if self.path_sample_cells < 1:
+            raise ConfigError(
+                f"path_gain.path_sample_cells must be >= 1, got {self.path_sample_cells}"
+            )
+        if self.top_k < 1:
+            raise ConfigError(f"path_gain.top_k must be >= 1, got {self.top_k}")
+
+
+@dataclass(frozen=True)
 class UpenConfig:
     """UPEN: RRT over non-occupied cells, best variance-sum path, re-plan every few steps."""
 
@@ -120,6 +145,7 @@ class ExplorationConfig:
     navigation: NavigationConfig = field(default_factory=NavigationConfig)
     visibility: VisibilityConfig = field(default_factory=VisibilityConfig)
     ig_hector: IgHectorConfig = field(default_factory=IgHectorConfig)
+    path_gain: PathGainConfig = field(default_factory=PathGainConfig)
     upen: UpenConfig = field(default_factory=UpenConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     world: WorldConfig = field(default_factory=WorldConfig)

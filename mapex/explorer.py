@@ -96,7 +96,7 @@ class Explorer:
         ):
             self._repair_path()
         if self.goal is None:
-            self._replan(t)
+            self.replan(t)
         if self.goal is None:
             return None
         moved, self.path = advance_along_path(self.path, self.config.motion.cells_per_step)
@@ -126,7 +126,8 @@ class Explorer:
         if self.path is None:
             self.goal = None
 
-    def _replan(self, t: int) -> None:
+    def replan(self, t: int) -> None:
+        """Predict, score the frontiers and set a new goal and path (or the end reason)."""
         self.stats.replans += 1
         self.prediction = self.predict() if self.method.uses_prediction else None
         method = self._method_for(t, self.prediction)

@@ -11,7 +11,8 @@ Every method that raycasts uses this one kernel over an `opacity` map (float32, 
 The stopping cell is visible (the sensor sees the surface it stops on). Rays walk the cells of
 `mapex.raycast`, like the LiDAR, up to `range_cells` or the map border. A viewpoint's visible
 set is the union of its rays' cells, each counted once; its gain is the sum of `weights` over
-that set (callers give already-known cells weight 0).
+that set (callers give already-known cells weight 0). A *group* of viewpoints (the samples of a
+path and its end, `group_visibility_gain`) sees the union of their sets, each cell once.
 """
 
 from __future__ import annotations
@@ -45,7 +46,38 @@ def visibility_gain(
     cells = _checked_viewpoints(viewpoints, opacity.shape)
     accumulate = _checked_ray_settings(n_rays, range_cells, stop_rule, epsilon)
     stamp = np.zeros(opacity.shape, dtype=np.uint8)
-    return _run(opacity, weights, cells, n_rays, range_cells, accumulate, epsilon, stamp)
+    groups = np.arange(len(cells), dtype=np.int64)
+    return _run(opacity, weights, cells, groups, n_rays, range_cells, accumulate, epsilon, stamp)
+
+
+def group_visibility_gain(
+    opacity: np.ndarray,
+    weights: np.ndarray,
+    viewpoint_groups: list[np.ndarray],
+    n_rays: int,
+    range_cells: int,
+    stop_rule: str,
+    epsilon: float,
+) -> np.ndarray:
+    """float64 (G,): sum of `weights` over the union of the visible sets of each group of
+    viewpoints (a cell seen from several viewpoints of a group counts once).
+
+    viewpoint_groups: G int (n_g, 2) arrays of cells inside the map (an empty group gains 0),
+    e.g. the samples of a path and its end; other arguments as `visibility_gain`.
+    """
+    opacity = _as_float32_map(opacity, "opacity")
+    weights = _as_float32_map(weights, "weights")
+    if weights.shape != opacity.shape:
+        raise ValueError(f"weights {weights.shape} and opacity {opacity.shape} differ in shape")
+    accumulate = _checked_ray_settings(n_rays, range_cells, stop_rule, epsilon)
+    sizes = [len(group) for group in viewpoint_groups]
+    arrays = [np.reshape(group, (-1, 2)) for group in viewpoint_groups]
+    joined = np.concatenate(arrays) if arrays else np.zeros((0, 2), dtype=np.int64)
+    cells = _checked_viewpoints(joined, opacity.shape)
+    groups = np.repeat(np.arange(len(sizes), dtype=np.int64), sizes)
+    stamp = np.zeros(opacity.shape, dtype=np.uint8)
+    gains = _run(opacity, weights, cells, groups, n_rays, range_cells, accumulate, epsilon, stamp)
+    return np.bincount(groups, weights=gains, minlength=len(sizes)).astype(np.float64)
 
 
 def visible_mask(
@@ -62,7 +94,8 @@ def visible_mask(
     accumulate = _checked_ray_settings(n_rays, range_cells, stop_rule, epsilon)
     stamp = np.zeros(opacity.shape, dtype=np.uint8)
     no_weights = np.zeros(opacity.shape, dtype=np.float32)
-    _run(opacity, no_weights, cells, n_rays, range_cells, accumulate, epsilon, stamp)
+    groups = np.zeros(1, dtype=np.int64)
+    _run(opacity, no_weights, cells, groups, n_rays, range_cells, accumulate, epsilon, stamp)
     return stamp == 1
 
 
@@ -98,23 +131,39 @@ def _checked_ray_settings(n_rays: int, range_cells: int, stop_rule: str, epsilon
     return stop_rule == "accumulate"
 
 
-def _run(opacity, weights, cells, n_rays, range_cells, accumulate, epsilon, stamp) -> np.ndarray:
+def _run(
+    opacity, weights, cells, groups, n_rays, range_cells, accumulate, epsilon, stamp
+) -> np.ndarray:
     """Call the kernel with fixed argument types (one compiled version)."""
     directions = ray_directions(n_rays)
     return _gain_kernel(
-        opacity, weights, cells, directions, float(range_cells), accumulate, float(epsilon), stamp
+        opacity,
+        weights,
+        cells,
+        groups,
+        directions,
+        float(range_cells),
+        accumulate,
+        float(epsilon),
+        stamp,
     )
 
 
 @njit(cache=True)
-def _gain_kernel(opacity, weights, viewpoints, directions, range_cells, accumulate, epsilon, stamp):
-    """Gain per viewpoint; viewpoint i stamps its visible cells with i % 255 + 1 in the uint8
-    `stamp` (all zeros on entry), which is cleared again after every 255 viewpoints."""
+def _gain_kernel(
+    opacity, weights, viewpoints, groups, directions, range_cells, accumulate, epsilon, stamp
+):
+    """Gain per viewpoint, each cell counted once per group. The viewpoints of a group are
+    consecutive (`groups`: int64 group id per viewpoint); the g-th group met stamps its visible
+    cells with g % 255 + 1 in the uint8 `stamp` (all zeros on entry), which is cleared again
+    after every 255 groups."""
     gains = np.zeros(viewpoints.shape[0], dtype=np.float64)
+    mark = 0
     for i in range(viewpoints.shape[0]):
-        mark = i % 255 + 1
-        if mark == 1 and i > 0:
-            stamp[:] = 0
+        if i == 0 or groups[i] != groups[i - 1]:
+            mark = mark % 255 + 1
+            if mark == 1 and i > 0:
+                stamp[:] = 0
         for k in range(directions.shape[0]):
             ray = ray_through(directions[k, 0], directions[k, 1])
             state = start_state(viewpoints[i, 0], viewpoints[i, 1])

@@ -1,4 +1,5 @@
-"""The eight exploration methods of docs/algorithms.md#methods, selectable by name."""
+"""The exploration methods of docs/algorithms.md#methods (the paper's eight and two of our
+own), selectable by name."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from mapex.methods.information_gain import (
     ObservedMap,
 )
 from mapex.methods.nearest import NearestFrontier
+from mapex.methods.path_gain import MapExPath, MapExPlus
 from mapex.methods.upen import Upen
 
 METHODS: dict[str, type[Method]] = {
@@ -26,10 +28,13 @@ METHODS: dict[str, type[Method]] = {
         NoVisibility,
         IgHector,
         Upen,
+        MapExPath,
+        MapExPlus,
     )
 }
 MAIN_COMPARISON = ("nearest", "upen", "ig_hector", "mapex")
 ABLATIONS = ("deterministic", "no_variance", "observed_map", "no_visibility")
+BEYOND_PAPER = ("mapex_path", "mapex_plus")  # ours, not the paper's (docs/algorithms.md)
 
 
 def parse_method_list(text: str) -> list[str]:
@@ -52,6 +57,7 @@ def make_method(name: str, config: ExplorationConfig) -> Method:
 
 __all__ = [
     "ABLATIONS",
+    "BEYOND_PAPER",
     "MAIN_COMPARISON",
     "METHODS",
     "FrontierScorer",

@@ -13,7 +13,7 @@ import numpy as np
 
 from mapex.methods.base import FrontierScorer, PlanningContext
 from mapex.methods.information_gain import frontier_gain
-from mapex.search import shortest_path_tree
+from mapex.methods.paths import frontier_paths
 
 
 class IgHector(FrontierScorer):
@@ -28,18 +28,5 @@ class IgHector(FrontierScorer):
         gain = frontier_gain(
             context, context.prediction.main, weights, "threshold", cfg.occupied_threshold
         )
-        path_cost = exploration_transform_cost(context)
+        path_cost = frontier_paths(context).cost
         return gain - self.config.ig_hector.path_cost_weight * path_cost
-
-
-def exploration_transform_cost(context: PlanningContext) -> np.ndarray:
-    """Wall-penalised path cost from the robot to each frontier (inf where unreachable)."""
-    distance, _ = shortest_path_tree(context.cost, (int(context.pose[0]), int(context.pose[1])))
-    rows, cols = context.frontiers[:, 0], context.frontiers[:, 1]
-    direct = distance[rows, cols].astype(np.float64)
-    # A frontier next to a wall may itself be inflated: reach it from its cheapest neighbour.
-    padded = np.pad(distance, 1, constant_values=np.inf)
-    neighbours = np.stack(
-        [padded[rows + 1 + dr, cols + 1 + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)]
-    )
-    return np.minimum(direct, neighbours.min(axis=0) + 1.0)

@@ -42,6 +42,14 @@ def _predicted_walls_gain(context: PlanningContext, weights: np.ndarray) -> np.n
     )
 
 
+def mapex_gain(context: PlanningContext) -> np.ndarray:
+    """MapEx's gain: the sum of V_t over each frontier's probabilistically visible set
+    (rays on M_t, the configured stop rule)."""
+    cfg = context.config.visibility
+    weights = context.unknown_weights(context.prediction.variance)
+    return frontier_gain(context, context.prediction.mean, weights, cfg.stop_rule, cfg.epsilon)
+
+
 class MapEx(FrontierScorer):
     """MapEx: sum of V_t over the probabilistically visible set (rays on M_t) / distance."""
 
@@ -49,10 +57,7 @@ class MapEx(FrontierScorer):
     uses_prediction = True
 
     def score(self, context: PlanningContext) -> np.ndarray:
-        cfg = context.config.visibility
-        weights = context.unknown_weights(context.prediction.variance)
-        gain = frontier_gain(context, context.prediction.mean, weights, cfg.stop_rule, cfg.epsilon)
-        return gain / context.frontier_distances()
+        return mapex_gain(context) / context.frontier_distances()
 
 
 class Deterministic(FrontierScorer):

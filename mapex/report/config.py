@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from mapex.methods import ABLATIONS, MAIN_COMPARISON
+from mapex.methods import ABLATIONS, BEYOND_PAPER, MAIN_COMPARISON
 
 
 @dataclass(frozen=True)
@@ -23,5 +23,6 @@ class ReportConfig:
 
     @property
     def method_order(self) -> tuple[str, ...]:
-        """Rows of every table and figure: the main comparison, then the ablations."""
-        return MAIN_COMPARISON + ABLATIONS
+        """Rows of every table and figure: the main comparison, the ablations, then the
+        methods beyond the paper."""
+        return MAIN_COMPARISON + ABLATIONS + BEYOND_PAPER

@@ -7,7 +7,14 @@ from mapex.config import ExplorationConfig
 from mapex.episode import run_episode
 from mapex.frontiers import extract_frontiers
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
-from mapex.methods import ABLATIONS, MAIN_COMPARISON, METHODS, PlanningContext, make_method
+from mapex.methods import (
+    ABLATIONS,
+    BEYOND_PAPER,
+    MAIN_COMPARISON,
+    METHODS,
+    PlanningContext,
+    make_method,
+)
 from mapex.navigation import cost_map, reachable_mask
 from mapex.prediction import make_predictor
 from mapex.prediction.base import EnsemblePrediction
@@ -56,11 +63,17 @@ EXPECTED_SIDE = {
     "no_visibility": "left",  # the 5 m discs hold the same variance (through the wall): closer wins
     "ig_hector": "right",
     "upen": "right",
+    "mapex_path": "right",
+    "mapex_plus": "right",
 }
 
 
 def test_every_method_is_registered():
-    assert set(METHODS) == set(EXPECTED_SIDE) == set(MAIN_COMPARISON) | set(ABLATIONS)
+    assert (
+        set(METHODS)
+        == set(EXPECTED_SIDE)
+        == set(MAIN_COMPARISON) | set(ABLATIONS) | set(BEYOND_PAPER)
+    )
 
 
 @pytest.mark.parametrize("name", sorted(METHODS))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
-from mapex.methods import ABLATIONS, MAIN_COMPARISON
+from mapex.methods import ABLATIONS, BEYOND_PAPER, MAIN_COMPARISON
 from mapex.report import (
     auc_table,
     choose_snapshot_runs,
@@ -157,9 +157,10 @@ def test_staging_and_broken_folders(results, capsys):
 
 def test_method_order():
     order = ReportConfig().method_order
-    assert order == MAIN_COMPARISON + ABLATIONS
+    assert order == MAIN_COMPARISON + ABLATIONS + BEYOND_PAPER
     assert order[:4] == ("nearest", "upen", "ig_hector", "mapex")
-    assert order[4:] == ("deterministic", "no_variance", "observed_map", "no_visibility")
+    assert order[4:8] == ("deterministic", "no_variance", "observed_map", "no_visibility")
+    assert order[8:] == ("mapex_path", "mapex_plus")
     shuffled = ["zeta", "no_visibility", "mapex", "alpha", "deterministic", "nearest", "upen"]
     assert order_methods(shuffled, order) == [
         "nearest",

@@ -1,0 +1,96 @@
+"""Beyond the paper: MapEx with real path costs and the gain along the way
+(docs/algorithms.md#beyond-the-paper).
+
+* `mapex_path`: MapEx's gain (V_t over the probabilistically visible set) divided by the
+  wall-aware path cost from the robot (`mapex.methods.paths`) instead of the straight-line
+  distance; unreachable frontiers are ranked last.
+* `mapex_plus`: the robot also sees while it drives. The gain of a frontier is the worth of
+  the union of the cells visible (rays on M_t) from samples of the path to it and from the
+  frontier itself, each cell counted once; a cell's worth mixes expected new area (1 per
+  unknown cell) with ensemble disagreement (V_t), weighted by `path_gain.variance_weight`.
+  Divided by the path cost. Only the `path_gain.top_k` frontiers with the best
+  frontier-only score are raycast along their paths; the frontier-only score is a lower
+  bound of the full one, so every other frontier keeps it and the ranking stays consistent.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mapex.grid import UNKNOWN
+from mapex.methods.base import FrontierScorer, PlanningContext
+from mapex.methods.information_gain import frontier_gain, mapex_gain
+from mapex.methods.paths import frontier_paths
+from mapex.visibility import group_visibility_gain
+
+
+def per_path_cost(gain: np.ndarray, path_cost: np.ndarray) -> np.ndarray:
+    """gain / path cost (at least 1 cell); -inf for unreachable frontiers (inf cost)."""
+    reachable = np.isfinite(path_cost)
+    return np.where(reachable, gain / np.maximum(np.where(reachable, path_cost, 1.0), 1.0), -np.inf)
+
+
+def revealed_cell_worth(context: PlanningContext, variance_weight: float) -> np.ndarray:
+    """float32 map: (1 - w) + w x V_t / mean V_t on unknown cells, 0 on known ones.
+
+    The variance is scaled by its mean over the unknown cells where it is positive, so both
+    terms are worth 1 per cell on average whatever the ensemble's spread; with no variance
+    anywhere only the area term is left.
+    """
+    variance = context.prediction.variance
+    disputed = (context.observed == UNKNOWN) & (variance > 0)
+    scale = float(variance[disputed].mean(dtype=np.float64)) if disputed.any() else 0.0
+    relative = variance / np.float32(scale) if scale > 0 else np.zeros_like(variance)
+    return context.unknown_weights((1.0 - variance_weight) + variance_weight * relative)
+
+
+def path_viewpoints(path: np.ndarray, frontier: np.ndarray, every_cells: int) -> np.ndarray:
+    """int64 (n, 2): every `every_cells`-th cell of `path` after the robot's own, then the
+    frontier point (the robot has already scanned from where it stands)."""
+    samples = np.asarray(path, dtype=np.int64)[every_cells::every_cells]
+    return np.vstack([samples, np.asarray(frontier, dtype=np.int64)[None]])
+
+
+class MapExPath(FrontierScorer):
+    """MapEx's gain per unit of wall-aware path cost (one Dijkstra per re-plan)."""
+
+    name = "mapex_path"
+    uses_prediction = True
+
+    def score(self, context: PlanningContext) -> np.ndarray:
+        return per_path_cost(mapex_gain(context), frontier_paths(context).cost)
+
+
+class MapExPlus(FrontierScorer):
+    """Worth of the cells seen along the path and at the frontier, per unit path cost."""
+
+    name = "mapex_plus"
+    uses_prediction = True
+
+    def score(self, context: PlanningContext) -> np.ndarray:
+        visibility = context.config.visibility
+        settings = context.config.path_gain
+        worth = revealed_cell_worth(context, settings.variance_weight)
+        opacity = context.prediction.mean
+        at_frontier = frontier_gain(
+            context, opacity, worth, visibility.stop_rule, visibility.epsilon
+        )
+        paths = frontier_paths(context)
+        scores = per_path_cost(at_frontier, paths.cost)
+        ranked = [i for i in np.argsort(-scores, kind="stable") if np.isfinite(scores[i])]
+        candidates = np.array(ranked[: settings.top_k], dtype=np.int64)
+        groups = [
+            path_viewpoints(paths.path(i), context.frontiers[i], settings.path_sample_cells)
+            for i in candidates
+        ]
+        along = group_visibility_gain(
+            opacity,
+            worth,
+            groups,
+            visibility.n_rays,
+            visibility.range_cells,
+            visibility.stop_rule,
+            visibility.epsilon,
+        )
+        scores[candidates] = per_path_cost(along, paths.cost[candidates])
+        return scores
