@@ -34,13 +34,14 @@ def revealed_cell_worth(context: PlanningContext, variance_weight: float) -> np.
     """float32 map: (1 - w) + w x V_t / mean V_t on unknown cells, 0 on known ones.
 
     The variance is scaled by its mean over the unknown cells where it is positive, so both
-    terms are worth 1 per cell on average whatever the ensemble's spread; with no variance
-    anywhere only the area term is left.
+    terms are worth 1 per cell on average whatever the ensemble's spread. With no variance
+    anywhere (e.g. a single member answered) every unknown cell is worth 1: area only.
     """
     variance = context.prediction.variance
     disputed = (context.observed == UNKNOWN) & (variance > 0)
-    scale = float(variance[disputed].mean(dtype=np.float64)) if disputed.any() else 0.0
-    relative = variance / np.float32(scale) if scale > 0 else np.zeros_like(variance)
+    if not disputed.any():
+        return context.unknown_weights(1.0)
+    relative = variance / np.float32(variance[disputed].mean(dtype=np.float64))
     return context.unknown_weights((1.0 - variance_weight) + variance_weight * relative)
 
 

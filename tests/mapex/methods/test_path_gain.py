@@ -166,3 +166,13 @@ def test_bad_settings_are_one_line_errors(override, message):
     with pytest.raises(ConfigError, match=message) as info:
         apply_overrides(ExplorationConfig(), [override])
     assert "\n" not in str(info.value)
+
+
+def test_without_variance_every_unknown_cell_is_worth_one():
+    config = short_sight_config(variance_weight=1.0)
+    observed, robot, frontiers = corridor(doors_on_the_left=False)
+    context = context_for(observed, robot, frontiers, config)
+    agreeing = np.repeat(context.prediction.members[:1], 4, axis=0)
+    context = dataclasses.replace(context, prediction=EnsemblePrediction(agreeing))
+    worth = revealed_cell_worth(context, 1.0)
+    np.testing.assert_array_equal(worth, (observed == UNKNOWN).astype(np.float32))
