@@ -39,10 +39,7 @@ def visibility_gain(
     opacity, weights: float32 (rows, cols) (other dtypes are converted, at a copy's cost).
     viewpoints: int (N, 2) cells (row, col) inside the map.
     """
-    opacity = _as_float32_map(opacity, "opacity")
-    weights = _as_float32_map(weights, "weights")
-    if weights.shape != opacity.shape:
-        raise ValueError(f"weights {weights.shape} and opacity {opacity.shape} differ in shape")
+    opacity, weights = _checked_maps(opacity, weights)
     cells = _checked_viewpoints(viewpoints, opacity.shape)
     accumulate = _checked_ray_settings(n_rays, range_cells, stop_rule, epsilon)
     stamp = np.zeros(opacity.shape, dtype=np.uint8)
@@ -65,10 +62,7 @@ def group_visibility_gain(
     viewpoint_groups: G int (n_g, 2) arrays of cells inside the map (an empty group gains 0),
     e.g. the samples of a path and its end; other arguments as `visibility_gain`.
     """
-    opacity = _as_float32_map(opacity, "opacity")
-    weights = _as_float32_map(weights, "weights")
-    if weights.shape != opacity.shape:
-        raise ValueError(f"weights {weights.shape} and opacity {opacity.shape} differ in shape")
+    opacity, weights = _checked_maps(opacity, weights)
     accumulate = _checked_ray_settings(n_rays, range_cells, stop_rule, epsilon)
     sizes = [len(group) for group in viewpoint_groups]
     arrays = [np.reshape(group, (-1, 2)) for group in viewpoint_groups]
@@ -97,6 +91,15 @@ def visible_mask(
     groups = np.zeros(1, dtype=np.int64)
     _run(opacity, no_weights, cells, groups, n_rays, range_cells, accumulate, epsilon, stamp)
     return stamp == 1
+
+
+def _checked_maps(opacity: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Both maps as float32 2-D arrays of one shape (ValueError otherwise)."""
+    opacity = _as_float32_map(opacity, "opacity")
+    weights = _as_float32_map(weights, "weights")
+    if weights.shape != opacity.shape:
+        raise ValueError(f"weights {weights.shape} and opacity {opacity.shape} differ in shape")
+    return opacity, weights
 
 
 def _as_float32_map(values: np.ndarray, name: str) -> np.ndarray:

@@ -26,8 +26,7 @@ from mapex.visibility import group_visibility_gain
 
 def per_path_cost(gain: np.ndarray, path_cost: np.ndarray) -> np.ndarray:
     """gain / path cost (at least 1 cell); -inf for unreachable frontiers (inf cost)."""
-    reachable = np.isfinite(path_cost)
-    return np.where(reachable, gain / np.maximum(np.where(reachable, path_cost, 1.0), 1.0), -np.inf)
+    return np.where(np.isfinite(path_cost), gain / np.maximum(path_cost, 1.0), -np.inf)
 
 
 def revealed_cell_worth(context: PlanningContext, variance_weight: float) -> np.ndarray:
