@@ -92,6 +92,12 @@ class PathGainConfig:
     variance_weight: float = 0.5
     path_sample_cells: int = 10  # one viewpoint every 1 m of path (plus the frontier)
     top_k: int = 8  # frontiers (best frontier-only score) whose path gain is computed
+    # score = gain / (path cost + offset): an offset > 0 stops a tiny gain next to the robot
+    # from outranking a large one a little further away (0 = plain gain per cell of path)
+    cost_offset_cells: float = 20.0  # 2 m
+    # re-plan every this many steps even while the goal still has unknown cells (0 = only
+    # when the goal is reached or spent, as mapex): what the drive reveals can redirect it
+    replan_every_steps: int = 20
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.variance_weight <= 1.0:
@@ -104,6 +110,14 @@ class PathGainConfig:
             )
         if self.top_k < 1:
             raise ConfigError(f"path_gain.top_k must be >= 1, got {self.top_k}")
+        if not self.cost_offset_cells >= 0.0:
+            raise ConfigError(
+                f"path_gain.cost_offset_cells must be >= 0, got {self.cost_offset_cells}"
+            )
+        if self.replan_every_steps < 0:
+            raise ConfigError(
+                f"path_gain.replan_every_steps must be >= 0, got {self.replan_every_steps}"
+            )
 
 
 @dataclass(frozen=True)

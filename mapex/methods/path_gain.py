@@ -8,15 +8,18 @@
   the union of the cells visible (rays on M_t) from samples of the path to it and from the
   frontier itself, each cell counted once; a cell's worth mixes expected new area (1 per
   unknown cell) with ensemble disagreement (V_t), weighted by `path_gain.variance_weight`.
-  Divided by the path cost. Only the `path_gain.top_k` frontiers with the best
-  frontier-only score are raycast along their paths; the frontier-only score is a lower
-  bound of the full one, so every other frontier keeps it and the ranking stays consistent.
+  Divided by the path cost plus a fixed trip cost (`path_gain.cost_offset_cells`), and
+  re-planned every `path_gain.replan_every_steps` steps. Only the `path_gain.top_k` frontiers
+  with the best frontier-only score are raycast along their paths; the frontier-only score
+  is a lower bound of the full one, so every other frontier keeps it and the ranking stays
+  consistent.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from mapex.config import ExplorationConfig
 from mapex.grid import UNKNOWN
 from mapex.methods.base import FrontierScorer, PlanningContext
 from mapex.methods.information_gain import frontier_gain, mapex_gain
@@ -24,9 +27,10 @@ from mapex.methods.paths import frontier_paths
 from mapex.visibility import group_visibility_gain
 
 
-def per_path_cost(gain: np.ndarray, path_cost: np.ndarray) -> np.ndarray:
-    """gain / path cost (at least 1 cell); -inf for unreachable frontiers (inf cost)."""
-    return np.where(np.isfinite(path_cost), gain / np.maximum(path_cost, 1.0), -np.inf)
+def per_path_cost(gain: np.ndarray, path_cost: np.ndarray, offset_cells: float = 0.0) -> np.ndarray:
+    """gain / (path cost + offset) (at least 1 cell); -inf for unreachable frontiers."""
+    finite = np.isfinite(path_cost)
+    return np.where(finite, gain / np.maximum(path_cost + offset_cells, 1.0), -np.inf)
 
 
 def revealed_cell_worth(context: PlanningContext, variance_weight: float) -> np.ndarray:
@@ -67,6 +71,10 @@ class MapExPlus(FrontierScorer):
     name = "mapex_plus"
     uses_prediction = True
 
+    def __init__(self, config: ExplorationConfig) -> None:
+        super().__init__(config)
+        self.replan_every_steps = config.path_gain.replan_every_steps or None
+
     def score(self, context: PlanningContext) -> np.ndarray:
         visibility = context.config.visibility
         settings = context.config.path_gain
@@ -76,7 +84,8 @@ class MapExPlus(FrontierScorer):
             context, opacity, worth, visibility.stop_rule, visibility.epsilon
         )
         paths = frontier_paths(context)
-        scores = per_path_cost(at_frontier, paths.cost)
+        offset = settings.cost_offset_cells
+        scores = per_path_cost(at_frontier, paths.cost, offset)
         ranked = [i for i in np.argsort(-scores, kind="stable") if np.isfinite(scores[i])]
         candidates = np.array(ranked[: settings.top_k], dtype=np.int64)
         groups = [
@@ -92,5 +101,5 @@ class MapExPlus(FrontierScorer):
             visibility.stop_rule,
             visibility.epsilon,
         )
-        scores[candidates] = per_path_cost(along, paths.cost[candidates])
+        scores[candidates] = per_path_cost(along, paths.cost[candidates], offset)
         return scores

@@ -9,7 +9,7 @@ import pytest
 from mapex.config import ConfigError, ExplorationConfig, apply_overrides
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
 from mapex.methods import PlanningContext, make_method
-from mapex.methods.path_gain import path_viewpoints, revealed_cell_worth
+from mapex.methods.path_gain import path_viewpoints, per_path_cost, revealed_cell_worth
 from mapex.methods.paths import frontier_paths
 from mapex.navigation import cost_map, reachable_mask
 from mapex.prediction.base import EnsemblePrediction
@@ -160,6 +160,9 @@ def test_frontier_paths_reach_an_inflated_frontier_from_its_neighbour():
         ("path_gain.variance_weight=-0.1", "variance_weight must be in"),
         ("path_gain.path_sample_cells=0", "path_sample_cells must be >= 1"),
         ("path_gain.top_k=0", "top_k must be >= 1"),
+        ("path_gain.cost_offset_cells=-1", "cost_offset_cells must be >= 0"),
+        ("path_gain.cost_offset_cells=nan", "cost_offset_cells must be >= 0"),
+        ("path_gain.replan_every_steps=-5", "replan_every_steps must be >= 0"),
     ],
 )
 def test_bad_settings_are_one_line_errors(override, message):
@@ -176,3 +179,16 @@ def test_without_variance_every_unknown_cell_is_worth_one():
     context = dataclasses.replace(context, prediction=EnsemblePrediction(agreeing))
     worth = revealed_cell_worth(context, 1.0)
     np.testing.assert_array_equal(worth, (observed == UNKNOWN).astype(np.float32))
+
+
+def test_cost_offset_lets_a_large_gain_further_away_win():
+    gain, path_cost = np.array([1.0, 5.0]), np.array([2.0, 20.0])
+    assert np.argmax(per_path_cost(gain, path_cost)) == 0
+    assert np.argmax(per_path_cost(gain, path_cost, offset_cells=20.0)) == 1
+    assert per_path_cost(gain, np.array([np.inf, 3.0]), offset_cells=20.0)[0] == -np.inf
+
+
+@pytest.mark.parametrize("every, expected", [(0, None), (15, 15)])
+def test_mapex_plus_replans_periodically_only_when_asked(every, expected):
+    method = make_method("mapex_plus", short_sight_config(replan_every_steps=every))
+    assert method.replan_every_steps == expected
