@@ -14,15 +14,13 @@ from mapex.config import (
     add_override_argument,
     apply_overrides,
 )
-from mapex.exit_codes import EXIT_INTERRUPTED, EXIT_USAGE
+from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
 from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
 from mapex.prediction.config import add_precision_argument
 from mapex.prediction.weights import WeightsError
 from mapex.worlds import DEFAULT_WORLD, WorldError, load_world, start_label
 from mapex.worlds.starts import add_start_argument, start_cell
-
-DEFAULT_RESULTS_DIR = Path("results")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -78,13 +76,22 @@ def predictor_options(args: argparse.Namespace) -> dict:
 
 def run_command(args: argparse.Namespace) -> int:
     from mapex.episode import run_episode
-    from mapex.results import describe_end, run_name, write_results
+    from mapex.results import (
+        DEFAULT_RESULTS_DIR,
+        OutputError,
+        check_output_folder,
+        check_run_folder,
+        describe_end,
+        run_name,
+        write_results,
+    )
 
     if args.steps < 1:
         raise ConfigError(f"--steps must be at least 1 (got {args.steps})")
     config = apply_overrides(ExplorationConfig(steps=args.steps), args.overrides)
     world = load_world(args.world)
     start_cell(world, args.start, config.world.start_clearance_cells)  # a bad start: no work
+    check_run_folder(args.out) if args.out else check_output_folder(DEFAULT_RESULTS_DIR)
     predictor = make_predictor(args.predictor, **predictor_options(args))
     with tqdm(
         total=config.steps,
@@ -103,7 +110,11 @@ def run_command(args: argparse.Namespace) -> int:
             on_step=lambda t, *_: bar.update(t - bar.n),
         )
     out_dir = args.out or DEFAULT_RESULTS_DIR / run_name(result)
-    write_results(result, world, out_dir)
+    try:
+        write_results(result, world, out_dir)
+    except OutputError as error:
+        print(f"mapex: error: {error}", file=sys.stderr)
+        return EXIT_FAILED
     auc = result.curves.auc()
     print(
         f"{result.method} on {result.world} ({start_label(result.start_spec)}): coverage AUC "

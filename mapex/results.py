@@ -14,6 +14,7 @@ import csv
 import dataclasses
 import json
 import math
+import os
 import shutil
 import tempfile
 from pathlib import Path
@@ -31,6 +32,35 @@ CURVES_FILE = "curves.csv"
 TRAJECTORY_FILE = "trajectory.csv"
 PICTURE_FILE = "final.png"
 SNAPSHOTS_FILE = "snapshots.npz"
+DEFAULT_RESULTS_DIR = Path("results")  # where a run goes without --out
+
+
+class OutputError(OSError):
+    """Results cannot be written where asked: one line, naming the folder and the reason
+    (an OSError, so every command's one-line error handling already reports it)."""
+
+
+def check_output_folder(folder: Path) -> Path:
+    """Create `folder` and write and remove a probe file in it, so that a bad output place
+    (a file, no permission, a full disk) is found before any work, not after the run."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".probe-{os.getpid()}"
+        probe.write_bytes(b"mapex")
+        probe.unlink()
+    except OSError as error:
+        raise OutputError(f"cannot write results to {folder}: {_reason(error)}") from None
+    return folder
+
+
+def check_run_folder(out_dir: Path) -> Path:
+    """A run folder can be written to `out_dir` (replacing an older run folder there)."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise OutputError(f"cannot write results to {out_dir}: it is a file")
+    check_output_folder(out_dir.parent)
+    return out_dir
 
 
 def run_name(result: EpisodeResult) -> str:
@@ -41,8 +71,13 @@ def run_name(result: EpisodeResult) -> str:
 def episode_name(world: str, method: str, start: StartSpec, seed: int) -> str:
     """The results-folder name of a run: `<world>-<method>-<start label>-seed<s>`, with the
     world name made file-system safe (e.g. `50052748-mapex-start-r15c380-seed0`)."""
+    return folder_name(world, method, start_label(start), seed)
+
+
+def folder_name(world: str, method: str, start: str, seed: int) -> str:
+    """`episode_name` from a start label (`start2`, `start-r15c380`)."""
     safe_world = world.replace(":", "_").replace("/", "_")
-    return f"{safe_world}-{method}-{start_label(start)}-seed{seed}"
+    return f"{safe_world}-{method}-{start}-seed{seed}"
 
 
 def describe_end(result: EpisodeResult) -> str:
@@ -85,10 +120,19 @@ def summary(result: EpisodeResult) -> dict:
 
 
 def write_results(result: EpisodeResult, world: World, out_dir: Path) -> Path:
-    """Write the run's folder atomically to `out_dir` (replacing an older one)."""
-    out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    """Write the run's folder atomically to `out_dir` (replacing an older one); on any
+    failure nothing is left behind and OutputError says why in one line."""
+    out_dir = check_run_folder(out_dir)
     staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        _write_run_files(result, world, staging)
+        return move_into_place(staging, out_dir)
+    except OSError as error:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise OutputError(f"could not write the run to {out_dir}: {_reason(error)}") from None
+
+
+def _write_run_files(result: EpisodeResult, world: World, staging: Path) -> None:
     (staging / METRICS_FILE).write_text(json.dumps(summary(result), indent=2) + "\n")
     _write_curves(result, staging / CURVES_FILE)
     _write_trajectory(result, staging / TRAJECTORY_FILE)
@@ -101,7 +145,6 @@ def write_results(result: EpisodeResult, world: World, out_dir: Path) -> Path:
         world.occupancy,
         result.trajectory,
     )
-    return move_into_place(staging, out_dir)
 
 
 def move_into_place(folder: Path, out_dir: Path) -> Path:
@@ -139,6 +182,10 @@ def _write_snapshots(result: EpisodeResult, path: Path) -> None:
             [quantise_probability(result.snapshots[t][1]) for t in steps], dtype=np.uint8
         )
     np.savez_compressed(path, **arrays)
+
+
+def _reason(error: OSError) -> str:
+    return error.strerror or str(error)
 
 
 def _json_float(value: float) -> float | None:

@@ -11,8 +11,11 @@ adding workers adds throughput. Each planner writes its episode to a hidden fold
 this process, once the planner has exited cleanly, renames to
 `<out>/<world>-<method>-start<i>-seed<s>/` (`mapex.results.episode_name`); rerunning the
 same command skips those, so a kill at any moment loses at most the episodes in flight (and
-a planner orphaned by the kill, whose pool is gone, can add nothing). At the end the report
-(`python -m mapex.report <out>`) is written to `<out>/report/`.
+a planner orphaned by the kill, whose pool is gone, can add nothing). A folder counts only
+if its metrics and curves parse and name the same run and configuration; any other is moved
+to `<out>/.broken/` (named in the log) and run again. `--out` is checked (created, a probe
+file written) before anything runs. At the end the report (`python -m mapex.report <out>`)
+is written to `<out>/report/`; it refuses a folder with missing runs (exit 1).
 
 Starts are the corners 0-3 of each map's valid space, or the explicit cells a published
 protocol lists: `--starts-file FILE` holds a JSON object {"<map name>": [[row, col], ...]}
@@ -23,6 +26,7 @@ Every start is checked before anything runs (one line naming map and cell, exit 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import json
 import logging
@@ -31,7 +35,7 @@ import shutil
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from tqdm import tqdm
@@ -45,9 +49,10 @@ from mapex.config import (
 )
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import ABLATIONS, MAIN_COMPARISON, parse_method_list
-from mapex.results import METRICS_FILE, episode_name, move_into_place
+from mapex.report.runs import ReportError, load_run
+from mapex.results import METRICS_FILE, check_output_folder, episode_name, move_into_place
 from mapex.worlds import StartSpec, WorldError, load_world
-from mapex.worlds.starts import start_argument, start_cell
+from mapex.worlds.starts import start_argument, start_cell, start_label
 from services.codec import DEFAULT_SERVICES
 from services.config import ServicesConfig
 from services.keys import ID_MAX_CHARS
@@ -58,6 +63,7 @@ from services.supervisor import ProcessSpec, Supervisor
 from services.zenoh_config import HUB_HELP, ZenohConfigError, add_zenoh_arguments, open_session
 
 DEFAULT_OUT = Path("results/evaluation")
+BROKEN_DIR = ".broken"  # where a resume moves finished folders it cannot trust
 RUN_LOG_FILE = "evaluations.jsonl"  # one line per invocation: command, runs, wall time
 
 log = logging.getLogger("services.evaluate")
@@ -140,9 +146,55 @@ def _is_cell(value) -> bool:
     )
 
 
-def finished(episode: Episode, out_dir: Path) -> bool:
-    """Whether the episode's results folder is complete (folders appear whole, by rename)."""
-    return (out_dir / episode.name / METRICS_FILE).is_file()
+def finished(episode: Episode, out_dir: Path, config: dict | None = None) -> bool:
+    """Whether the episode has a sound results folder. Folders appear whole, by rename, but
+    a disk, an editor or another version can still damage one: a folder that fails
+    `run_problem` is moved aside to `<out>/.broken/` (named in the log) and run again."""
+    folder = out_dir / episode.name
+    if not folder.exists():
+        return False
+    problem = run_problem(episode, folder, config)
+    if problem is None:
+        return True
+    aside = out_dir / BROKEN_DIR / f"{episode.name}-{time.strftime('%Y%m%dT%H%M%S')}"
+    aside.parent.mkdir(exist_ok=True)
+    folder.rename(aside)
+    log.warning("%s: %s; moved aside to %s, running it again", episode.name, problem, aside)
+    return False
+
+
+def run_problem(episode: Episode, folder: Path, config: dict | None = None) -> str | None:
+    """Why a finished folder cannot count for `episode`, or None: its metrics and curves must
+    parse, name this world, method, start and seed, and (given `config`, the plain-data
+    configuration the episode would run with) agree with it on every field both have."""
+    try:
+        record = load_run(folder)
+    except (ReportError, OSError, ValueError, KeyError, TypeError) as error:
+        return f"unreadable ({' '.join(str(error).split())})"
+    wanted = (episode.world_name, episode.method, start_label(episode.start), episode.seed)
+    found = (record.world, record.method, record.start, record.seed)
+    if found != wanted:
+        return f"it holds {'/'.join(map(str, found))}, not {'/'.join(map(str, wanted))}"
+    if len(record.steps) == 0:
+        return "its curves are empty"
+    differing = config_difference(record.metrics.get("config"), config)
+    return None if differing is None else f"it was run with another {differing}"
+
+
+def config_difference(written: object, expected: dict | None, prefix: str = "") -> str | None:
+    """The first dotted field (e.g. `path_gain.top_k`) whose value differs between two plain
+    configurations, looking only at fields both have (so a field added later does not count)."""
+    if expected is None or not isinstance(written, dict):
+        return None if expected is None else "configuration (none recorded)"
+    for key in expected.keys() & written.keys():
+        mine, theirs = expected[key], written[key]
+        if isinstance(mine, dict):
+            found = config_difference(theirs, mine, f"{prefix}{key}.")
+            if found is not None:
+                return found
+        elif mine != theirs:
+            return f"{prefix}{key} ({theirs!r}, not {mine!r})"
+    return None
 
 
 def planner_folder(episode: Episode, out_dir: Path) -> Path:
@@ -165,7 +217,8 @@ def publish(episode: Episode, out_dir: Path) -> bool:
 
 def remove_staging(out_dir: Path) -> int:
     """Delete half-written folders a kill left behind (names start with '.'); how many."""
-    stale = [p for p in out_dir.glob(".*") if p.is_dir()] if out_dir.is_dir() else []
+    hidden = out_dir.glob(".*") if out_dir.is_dir() else []
+    stale = [p for p in hidden if p.is_dir() and p.name != BROKEN_DIR]
     for path in stale:
         shutil.rmtree(path, ignore_errors=True)
     return len(stale)
@@ -233,10 +286,11 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
     starts = args.starts if args.starts_file is None else read_starts_file(args.starts_file)
     clearance = exploration.world.start_clearance_cells
     episodes = plan_episodes(args.maps, methods, starts, args.seeds, clearance)
-    args.out.mkdir(parents=True, exist_ok=True)
+    check_output_folder(args.out)
     if remove_staging(args.out):
         log.info("removed half-written runs of an interrupted evaluation")
-    todo = [e for e in episodes if not finished(e, args.out)]
+    config = json.loads(json.dumps(dataclasses.asdict(replace(exploration, steps=args.steps))))
+    todo = [e for e in episodes if not finished(e, args.out, config)]
     already = len(episodes) - len(todo)
     log.info("%d episodes: %d already finished, %d to run", len(episodes), already, len(todo))
     own_config, flags = hub_session_config(args, services)
@@ -266,7 +320,8 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
     if not args.no_report:
         from mapex.report import main as report_main
 
-        report_main([str(args.out)])
+        if report_main([str(args.out)]) != 0:
+            return EXIT_FAILED
     return EXIT_FAILED if failures else 0
 
 

@@ -41,7 +41,15 @@ from mapex.episode import EpisodeResult, run_episode
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
 from mapex.prediction.base import MEMBER_NAMES
-from mapex.results import describe_end, run_name, write_results
+from mapex.results import (
+    DEFAULT_RESULTS_DIR,
+    OutputError,
+    check_output_folder,
+    check_run_folder,
+    describe_end,
+    run_name,
+    write_results,
+)
 from mapex.worlds import StartSpec, World, WorldError, load_world, start_label
 from mapex.worlds.starts import add_start_argument, start_cell, start_spec_of
 from services.codec import DEFAULT_SERVICES
@@ -57,8 +65,6 @@ from services.zenoh_config import (
     open_session,
     zenoh_config_from_args,
 )
-
-DEFAULT_RESULTS_DIR = Path("results")
 
 log = logging.getLogger("services.planner")
 
@@ -178,6 +184,7 @@ def main(
     start: StartSpec | None = None,
 ) -> tuple[EpisodeResult, Path]:
     """Open a session, run the episode, write its results folder; return (result, folder)."""
+    check_run_folder(out) if out else check_output_folder(DEFAULT_RESULTS_DIR)
     session = open_session(config)
     try:
         result, world = explore(
@@ -188,7 +195,10 @@ def main(
     if supervisor_gone():  # the pool went down with it: the end of the run may be degraded
         raise PlannerError("the supervisor is gone: run abandoned, nothing written")
     out_dir = out or DEFAULT_RESULTS_DIR / run_name(result)
-    write_results(result, world, out_dir)
+    try:
+        write_results(result, world, out_dir)
+    except OutputError as error:
+        raise PlannerError(str(error)) from None
     return result, out_dir
 
 
@@ -242,7 +252,7 @@ def run_cli(argv: list[str] | None = None) -> int:
             config, args.run, args.robot, args.method, args.seed, args.out, exploration,
             progress=lambda t: bar.update(t - bar.n), local=local, start=args.start,
         )  # fmt: skip
-    except WorldError as error:
+    except (WorldError, OutputError) as error:
         log.error("%s", error)
         return EXIT_USAGE
     except (WorldUnavailableError, StepRefusedError, PlannerError) as error:

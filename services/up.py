@@ -37,6 +37,7 @@ from mapex.config import (
 )
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
+from mapex.results import DEFAULT_RESULTS_DIR, check_output_folder
 from mapex.worlds import DEFAULT_SPEC, StartSpec, WorldError, load_world
 from mapex.worlds.starts import add_start_argument, start_argument, start_cell
 from services.codec import DEFAULT_SERVICES
@@ -164,6 +165,7 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
     world = load_world(args.world)
     exploration = apply_overrides(ExplorationConfig(), args.overrides)
     start_cell(world, args.start, exploration.world.start_clearance_cells)
+    check_output_folder(args.out or DEFAULT_RESULTS_DIR)
     runs = plan_runs(args)
     own_config, zenoh_flags = hub_session_config(args, services)
     specs = child_specs(args, runs, zenoh_flags)
@@ -224,7 +226,7 @@ def run_cli(argv: list[str] | None = None) -> int:
     configure_logging("up")
     try:
         return main(args)
-    except (WorldError, ConfigError, ZenohConfigError, ValueError) as error:
+    except (WorldError, ConfigError, ZenohConfigError, ValueError, OSError) as error:
         print(f"services.up: error: {' '.join(str(error).split())}", file=sys.stderr)
         return EXIT_USAGE
 

@@ -51,6 +51,7 @@ from mapex.report.runs import (
     load_runs,
     load_snapshots,
     load_snapshots_or_warn,
+    missing_runs,
     warn_stderr,
 )
 from mapex.report.tables import (
@@ -65,6 +66,7 @@ from mapex.report.tables import (
     improvements_markdown,
     mean_se,
     method_rows,
+    missing_note,
     order_methods,
     relative_improvement,
     relative_improvements,
@@ -103,6 +105,8 @@ __all__ = [
     "load_snapshots",
     "main",
     "mean_curve",
+    "missing_runs",
+    "missing_note",
     "mean_se",
     "method_rows",
     "order_methods",
@@ -140,6 +144,7 @@ def write_report(
     config: ReportConfig | None = None,
     snapshot_pick: RunRecord | None = None,
     warn: Warn = warn_stderr,
+    missing: Sequence[str] = (),
 ) -> tuple[ReportFiles, str]:
     """Write report.md, report.json and the figures of `runs` to `out_dir`; return the files
     and the Markdown summary (AUC and improvement tables) for the terminal."""
@@ -150,7 +155,7 @@ def write_report(
     table = auc_table(runs, order)
     improvements = relative_improvements(table, REFERENCE_METHOD)
     counts = run_counts(runs, order)
-    notes = [n for n in (budget_warning(runs),) if n]
+    notes = [n for n in (budget_warning(runs), missing_note(missing)) if n]
     for note in notes:
         warn(note)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -227,6 +232,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="run folder name whose world and start snapshots.png shows for every method; "
         "default: the first world/start that every method has",
     )
+    parser.add_argument(
+        "--allow-missing",
+        action="store_true",
+        help="report even when runs are missing or unreadable (a method absent on some "
+        "world/start/seed that others have); the report then lists them",
+    )
     return parser
 
 
@@ -247,12 +258,20 @@ def report_command(args: argparse.Namespace) -> tuple[ReportFiles, str]:
     if not results_dir.is_dir():
         raise ReportError(f"results directory {results_dir} does not exist")
     out_dir = results_dir / REPORT_DIR_NAME if args.out is None else args.out
-    runs = load_runs(results_dir, exclude=(out_dir, results_dir / REPORT_DIR_NAME))
+    skipped: list[str] = []
+    runs = load_runs(results_dir, exclude=(out_dir, results_dir / REPORT_DIR_NAME), skipped=skipped)
     if not runs:
         raise ReportError(f"no finished runs in {results_dir}")
+    unreadable = [f"{name} (unreadable)" for name in skipped]
+    gaps = unreadable + [name for name in missing_runs(runs) if name not in skipped]
+    if gaps and not args.allow_missing:
+        raise ReportError(
+            f"{len(gaps)} run(s) missing or unreadable (first: {gaps[0]}): complete them (rerun"
+            " the evaluation) or pass --allow-missing to report without them"
+        )
     pick = None
     if args.snapshot_run is not None:
         pick = next((r for r in runs if r.name == args.snapshot_run), None)
         if pick is None:
             raise ReportError(f"--snapshot-run: no finished run named '{args.snapshot_run}'")
-    return write_report(runs, out_dir, snapshot_pick=pick)
+    return write_report(runs, out_dir, snapshot_pick=pick, missing=gaps)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapex.results import CURVES_FILE, METRICS_FILE, SNAPSHOTS_FILE
+from mapex.results import CURVES_FILE, METRICS_FILE, SNAPSHOTS_FILE, folder_name
 from mapex.worlds.starts import start_label
 
 METRICS = ("coverage", "iou", "tu")
@@ -97,10 +97,14 @@ class RunRecord:
 
 
 def load_runs(
-    results_dir: Path, warn: Warn = warn_stderr, exclude: Iterable[Path] = ()
+    results_dir: Path,
+    warn: Warn = warn_stderr,
+    exclude: Iterable[Path] = (),
+    skipped: list[str] | None = None,
 ) -> list[RunRecord]:
     """Every finished run folder of `results_dir`, sorted by name; hidden (staging) folders and
-    `exclude` are ignored, unreadable folders skipped with one warning line each."""
+    `exclude` are ignored, unreadable folders skipped with one warning line each (and their
+    names appended to `skipped`)."""
     excluded = {Path(p).resolve() for p in exclude}
     runs = []
     for folder in sorted(Path(results_dir).iterdir()):
@@ -110,7 +114,20 @@ def load_runs(
             runs.append(load_run(folder))
         except (OSError, ValueError, KeyError, TypeError) as error:
             warn(f"skipping {folder.name}: {error}")
+            if skipped is not None:
+                skipped.append(folder.name)
     return runs
+
+
+def missing_runs(runs: Iterable[RunRecord]) -> list[str]:
+    """The runs a complete experiment would also hold: every method present, on every start
+    and seed present for each world; their folder names, sorted."""
+    runs = list(runs)
+    methods = {r.method for r in runs}
+    have = {(r.world, r.method, r.start, r.seed) for r in runs}
+    cells = {(r.world, r.start, r.seed) for r in runs}
+    wanted = {(w, m, s, seed) for (w, s, seed) in cells for m in methods}
+    return sorted(folder_name(*run) for run in wanted - have)
 
 
 def load_run(folder: Path) -> RunRecord:

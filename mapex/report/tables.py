@@ -142,6 +142,13 @@ def budget_warning(runs: Sequence[RunRecord]) -> str | None:
     return None
 
 
+def missing_note(missing: Sequence[str]) -> str | None:
+    """A note naming the runs left out of an incomplete report (`--allow-missing`)."""
+    if not missing:
+        return None
+    return f"reported without {len(missing)} missing or unreadable run(s): {', '.join(missing)}"
+
+
 # ---------------------------------------------------------------- markdown / json
 
 

@@ -71,3 +71,12 @@ def test_bad_map_file_gives_one_line_error(tmp_path):
     done = run_cli("run", "--no-progress", "--world", str(tmp_path))
     assert done.returncode == 2
     assert "Traceback" not in done.stderr and "occ_map.npy" in done.stderr
+
+
+@pytest.mark.slow  # runs the command in a process of its own
+def test_a_bad_out_is_refused_before_the_run(tmp_path):
+    (tmp_path / "taken").write_text("a file")
+    done = run_cli("run", "--no-progress", "--out", str(tmp_path / "taken" / "run"))
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert "cannot write results to" in done.stderr.strip().splitlines()[-1]
+    assert "coverage AUC" not in done.stdout  # nothing was run

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -14,7 +16,12 @@ import pytest
 from service_processes import REPO_ROOT, free_loopback_port, until
 from up_processes import pid_alive
 
+from mapex.config import ExplorationConfig
+from mapex.episode import run_episode
+from mapex.results import write_results
+from mapex.worlds import load_world
 from services.evaluate import (
+    BROKEN_DIR,
     Episode,
     finished,
     plan_episodes,
@@ -124,24 +131,75 @@ def test_a_malformed_starts_file_is_refused(tmp_path, text, message):
         read_starts_file(tmp_path / "s.json")
 
 
-def test_only_complete_folders_count_and_staging_is_removed(tmp_path):
-    episode = Episode("generated:0", "generated:0", "nearest", 0, 0)
-    assert not finished(episode, tmp_path)
-    (tmp_path / f".{episode.name}.abc").mkdir()
-    (tmp_path / episode.name).mkdir()
-    assert not finished(episode, tmp_path)
-    (tmp_path / episode.name / "metrics.json").write_text("{}")
-    assert finished(episode, tmp_path)
+SHORT = ExplorationConfig(steps=20)
+EPISODE = Episode("generated:0", "generated:0", "nearest", 0, 0)
+
+
+def plain(config: ExplorationConfig) -> dict:
+    return json.loads(json.dumps(dataclasses.asdict(config)))
+
+
+@pytest.fixture(scope="module")
+def sound_run(tmp_path_factory):
+    """A real finished folder of EPISODE (20 steps), to copy and damage."""
+    result = run_episode(load_world("generated:0"), "nearest", None, 0, 0, SHORT)
+    return write_results(result, load_world("generated:0"), tmp_path_factory.mktemp("r") / "run")
+
+
+def test_only_complete_folders_count_and_staging_is_removed(tmp_path, sound_run):
+    assert not finished(EPISODE, tmp_path)
+    (tmp_path / f".{EPISODE.name}.abc").mkdir()
+    shutil.copytree(sound_run, tmp_path / EPISODE.name)
+    assert finished(EPISODE, tmp_path, plain(SHORT))
     assert remove_staging(tmp_path) == 1 and remove_staging(tmp_path) == 0
 
 
-def test_a_planner_writes_hidden_and_only_the_evaluation_publishes(tmp_path):
-    episode = Episode("generated:0", "generated:0", "nearest", 0, 0)
+def damage_truncated_metrics(folder):
+    text = (folder / "metrics.json").read_text()
+    (folder / "metrics.json").write_text(text[: len(text) // 2])
+
+
+def damage_missing_curves(folder):
+    (folder / "curves.csv").unlink()
+
+
+def damage_other_method(folder):
+    metrics = json.loads((folder / "metrics.json").read_text())
+    (folder / "metrics.json").write_text(json.dumps({**metrics, "method": "mapex"}))
+
+
+@pytest.mark.parametrize(
+    ("damage", "config", "problem"),
+    [
+        (damage_truncated_metrics, SHORT, "unreadable"),
+        (damage_missing_curves, SHORT, "unreadable"),
+        (damage_other_method, SHORT, "not generated:0/nearest"),
+        (None, ExplorationConfig(steps=30), "another steps (20, not 30)"),
+        (None, dataclasses.replace(SHORT, path_gain=dataclasses.replace(
+            SHORT.path_gain, top_k=3)), "another path_gain.top_k"),
+    ],
+)  # fmt: skip
+def test_a_broken_or_foreign_folder_is_moved_aside_and_run_again(
+    tmp_path, sound_run, damage, config, problem, caplog
+):
+    shutil.copytree(sound_run, tmp_path / EPISODE.name)
+    if damage is not None:
+        damage(tmp_path / EPISODE.name)
+    with caplog.at_level("WARNING"):
+        assert not finished(EPISODE, tmp_path, plain(config))
+    assert problem in caplog.text and "moved aside" in caplog.text
+    assert not (tmp_path / EPISODE.name).exists()
+    [aside] = (tmp_path / BROKEN_DIR).iterdir()
+    assert aside.name.startswith(EPISODE.name)
+    assert remove_staging(tmp_path) == 0  # the evidence is kept
+
+
+def test_a_planner_writes_hidden_and_only_the_evaluation_publishes(tmp_path, sound_run):
+    episode = EPISODE
     written = planner_folder(episode, tmp_path)
     assert written.parent == tmp_path and written.name.startswith(".")
     assert not publish(episode, tmp_path)  # the planner wrote nothing
-    written.mkdir()
-    (written / "metrics.json").write_text("{}")
+    shutil.copytree(sound_run, written)
     assert not finished(episode, tmp_path)
     assert publish(episode, tmp_path) and finished(episode, tmp_path)
     assert not written.exists() and remove_staging(tmp_path) == 0
@@ -209,3 +267,15 @@ def test_bad_arguments_fail_in_one_line(args, message, tmp_path):
     assert message in completed.stderr.strip().splitlines()[-1]
     assert "Traceback" not in completed.stderr
     assert os.path.exists(tmp_path) and not (tmp_path / "out").exists()
+
+
+def test_a_bad_out_is_refused_before_any_episode(tmp_path):
+    (tmp_path / "taken").write_text("a file")
+    completed = subprocess.run(
+        [sys.executable, "-m", "services.evaluate", "--maps", "generated:0",
+         "--out", str(tmp_path / "taken")],
+        cwd=REPO_ROOT, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert completed.returncode == 2 and "Traceback" not in completed.stderr
+    assert "cannot write results to" in completed.stderr.strip().splitlines()[-1]
+    assert "episodes" not in completed.stderr  # found before any episode was planned to run

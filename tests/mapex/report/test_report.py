@@ -18,6 +18,7 @@ from mapex.report import (
     load_snapshots,
     main,
     mean_curve,
+    missing_runs,
     order_methods,
     plot_snapshots,
     relative_improvement,
@@ -251,15 +252,36 @@ def test_mixed_budgets_are_flagged(tmp_path):
 
 
 def test_cli_writes_report_to_default_folder(results, capsys):
-    assert main([str(results), "--snapshot-run", "generated_2-mapex-start0-seed0"]) == 0
+    pick = "generated_2-mapex-start0-seed0"
+    assert main([str(results), "--snapshot-run", pick, "--allow-missing"]) == 0
     out = results / "report"
     assert (out / "report.md").is_file() and is_png(out / "snapshots.png")
     data = json.loads((out / "report.json").read_text())
     assert [name.split("-")[0] for name in data["snapshot_runs"]] == ["generated_2"] * 2
     stdout = capsys.readouterr().out
     assert "| method | runs |" in stdout and "report.md" in stdout
-    assert main([str(results)]) == 0  # the report folder itself is not read as a run
+    assert main([str(results), "--allow-missing"]) == 0  # the report folder is not a run
     assert "skipping" not in capsys.readouterr().err
+
+
+def test_missing_runs_are_every_method_on_every_world_start_and_seed(results):
+    assert missing_runs(load_runs(results)) == [
+        "generated_1-upen-start0-seed0",
+        "generated_2-upen-start0-seed0",
+    ]
+
+
+def test_a_report_with_missing_or_broken_runs_is_refused_unless_allowed(results, capsys):
+    (results / "generated_1-mapex-start1-seed0" / "curves.csv").unlink()
+    assert main([str(results)]) == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "3 run(s) missing or unreadable" in error and "--allow-missing" in error
+    assert not (results / "report").exists()
+    assert main([str(results), "--allow-missing"]) == 0
+    text = (results / "report" / "report.md").read_text()
+    assert "reported without 3 missing or unreadable run(s)" in text
+    assert "generated_1-mapex-start1-seed0 (unreadable)" in text
+    assert "generated_2-upen-start0-seed0" in text
 
 
 def run_cli(*args):
