@@ -20,7 +20,7 @@ from services.config import ServicesConfig
 from services.keys import RobotKey, RobotTopic, parse_key, robot_key_pattern
 from services.messages import Message, decode_message
 from services.supervisor import ProcessSpec, claim_hub
-from services.zenoh_config import zenoh_config
+from services.zenoh_config import ZenohConfigError, zenoh_config
 
 log = logging.getLogger("services.pool")
 
@@ -80,8 +80,10 @@ def hub_session_config(
     hub on --listen (default tcp/127.0.0.1:7447) as a Zenoh *router* and its children are
     clients of it: every message takes one hop through the router, and no peer-to-peer mesh
     forms, whose routes Zenoh re-computes (dropping queries in flight) whenever a
-    short-lived peer such as an episode's planner joins or leaves. If the hub endpoint is
-    already taken (another supervisor), the children join that one the same way.
+    short-lived peer such as an episode's planner joins or leaves. If the default hub
+    endpoint is already taken (another supervisor), this is refused up front (a
+    ZenohConfigError with the two ways out): a run that silently joined would lose its hub,
+    and its results, when the other supervisor ends.
     """
     flags: list[str] = ["--config", args.config] if args.config else []
     if args.connect:  # a hub (router) elsewhere: everyone connects there
@@ -94,10 +96,12 @@ def hub_session_config(
     flags += ["--mode", "client" if mode == "router" else mode]
     listen = args.listen or [services.hub_endpoint]
     if not args.listen and not claim_hub(services.hub_endpoint):
-        log.info("a hub already listens on %s: joining it", services.hub_endpoint)
-        flags += ["--connect", services.hub_endpoint]
-        own_mode = "client" if mode == "router" else mode
-        return zenoh_config(own_mode, [services.hub_endpoint], None, args.config, services), flags
+        hub = services.hub_endpoint
+        raise ZenohConfigError(
+            f"a hub already listens on {hub} (another services.up or services.evaluate?): "
+            f"run beside it with --listen tcp/127.0.0.1:<free port>, or join it with --connect "
+            f"{hub} (this run then ends when that one does)"
+        )
     for endpoint in listen:
         flags += ["--connect", endpoint]
     return zenoh_config(mode, [], listen, args.config, services), flags

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -45,6 +46,7 @@ from services.keys import (
     run_key,
 )
 from services.messages import PoseMessage
+from services.supervisor import parse_tcp_endpoint
 from services.zenoh_config import open_session, zenoh_config
 
 WORLD = "generated:0"
@@ -314,3 +316,30 @@ def test_two_runs_share_a_pool_of_replicas_and_every_replica_works(tmp_path):
     assert first[0]["start_index"] == 0 and second[0]["start_index"] == 1
     for metrics, _, _ in (first, second):
         assert metrics["degraded_steps"] == [] and metrics["degraded_metric_samples"] == []
+
+
+HUB = DEFAULT_SERVICES.hub_endpoint
+
+
+@pytest.mark.parametrize("command", ["services.up", "services.evaluate"])
+def test_a_taken_default_hub_is_refused_up_front_with_the_ways_out(command, tmp_path):
+    """Joining another supervisor's hub silently would lose this run when that one ends."""
+    hub = socket.socket()
+    hub.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        hub.bind(parse_tcp_endpoint(HUB))  # or something already listens there: the same
+        hub.listen()
+    except OSError:
+        pass
+    try:
+        completed = subprocess.run(
+            [sys.executable, "-m", command, "--steps", "5", "--out", str(tmp_path / "out"),
+             *(["--maps", "generated:0"] if command == "services.evaluate" else [])],
+            cwd=REPO_ROOT, capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+    finally:
+        hub.close()
+    assert completed.returncode == 2 and "Traceback" not in completed.stderr
+    last = completed.stderr.strip().splitlines()[-1]
+    assert f"a hub already listens on {HUB}" in last
+    assert "--listen" in last and "--connect" in last
