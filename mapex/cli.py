@@ -89,7 +89,7 @@ def run_command(args: argparse.Namespace) -> int:
     if args.steps < 1:
         raise ConfigError(f"--steps must be at least 1 (got {args.steps})")
     config = apply_overrides(ExplorationConfig(steps=args.steps), args.overrides)
-    world = load_world(args.world)
+    world = load_world(args.world).check_size(config.world.max_cells)
     start_cell(world, args.start, config.world.start_clearance_cells)  # a bad start: no work
     check_run_folder(args.out) if args.out else check_output_folder(DEFAULT_RESULTS_DIR)
     predictor = make_predictor(args.predictor, **predictor_options(args))

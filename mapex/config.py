@@ -146,6 +146,14 @@ class WorldConfig:
     """Start poses (docs/algorithms.md#worlds)."""
 
     start_clearance_cells: int = 3  # 0.3 m
+    # worlds above this many cells are refused: a whole-map prediction grows with the area
+    # (about 0.4 s per member for 50015847's 0.59 M cells on one CPU thread) and would miss
+    # the query timeout; the largest development map (IPA office_g) has 1.2 M
+    max_cells: int = 4_000_000
+
+    def __post_init__(self) -> None:
+        if self.max_cells < 1:
+            raise ConfigError(f"world.max_cells must be >= 1, got {self.max_cells}")
 
 
 @dataclass(frozen=True)

@@ -87,6 +87,7 @@ def run_episode(
     """
     config = config or ExplorationConfig()
     start = normalise_start(start)
+    world.check_size(config.world.max_cells)
     cell = start_cell(world, start, config.world.start_clearance_cells)
     began = time.perf_counter()
     if source is None:

@@ -26,7 +26,10 @@ class ServicesConfig:
     predictor_drain_s: float = 3.0  # on shutdown, wait this long for the query being computed
     world_drain_s: float = 2.0  # on shutdown, wait this long for the step being answered
     step_timeout_s: float = 10.0  # one step query; a lost reply is retried with the same seq
-    step_retries: int = 3  # attempts per step before the planner gives up on the world
+    step_retries: int = 3  # the planner gives up on the world after this many x the timeout
+    step_retry_pause_s: tuple[float, float] = (0.2, 2.0)  # back-off between step queries:
+    # first pause, doubling up to the second; a world that is gone (a query that returns at
+    # once, unanswered) is asked again until the whole step_retries x step_timeout_s is spent
     world_wait_s: float = 60.0  # planner start-up: how long to wait for the world's keys
     workers_wait_s: float = 120.0  # planner start-up: how long to wait for every member
     supervisor_max_restarts: int = 5  # a crashed server is restarted this often, then left dead

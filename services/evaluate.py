@@ -43,6 +43,7 @@ from tqdm import tqdm
 from mapex.config import (
     ConfigError,
     ExplorationConfig,
+    WorldConfig,
     add_override_argument,
     apply_overrides,
     argparse_type,
@@ -63,6 +64,7 @@ from services.supervisor import ProcessSpec, Supervisor
 from services.zenoh_config import HUB_HELP, ZenohConfigError, add_zenoh_arguments, open_session
 
 DEFAULT_OUT = Path("results/evaluation")
+DEFAULT_WORLD_CONFIG = WorldConfig()
 BROKEN_DIR = ".broken"  # where a resume moves finished folders it cannot trust
 RUN_LOG_FILE = "evaluations.jsonl"  # one line per invocation: command, runs, wall time
 
@@ -95,17 +97,17 @@ def plan_episodes(
     methods: list[str],
     starts: list[int] | dict[str, list[StartSpec]],
     seeds: list[int],
-    clearance_cells: int = ExplorationConfig().world.start_clearance_cells,
+    world_config: WorldConfig = DEFAULT_WORLD_CONFIG,
 ) -> list[Episode]:
     """Every combination, worlds outermost. `starts`: the corners for every map, or each
     map's own starts by map name (see `read_starts_file`). Loads each world once to name
-    it and to check every start on it (WorldError naming map and cell)."""
+    it and to check its size and every start on it (WorldError naming map and cell)."""
     episodes = []
     for spec in world_specs:
-        world = load_world(spec)
+        world = load_world(spec).check_size(world_config.max_cells)
         mine = starts if isinstance(starts, list) else _starts_of(starts, world.name)
         for start in mine:
-            start_cell(world, start, clearance_cells)
+            start_cell(world, start, world_config.start_clearance_cells)
         episodes += [
             Episode(spec, world.name, method, start, seed)
             for method, start, seed in itertools.product(methods, mine, seeds)
@@ -284,8 +286,7 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
     exploration = apply_overrides(ExplorationConfig(), args.overrides)
     methods = list(args.methods) + (list(ABLATIONS) if args.ablations else [])
     starts = args.starts if args.starts_file is None else read_starts_file(args.starts_file)
-    clearance = exploration.world.start_clearance_cells
-    episodes = plan_episodes(args.maps, methods, starts, args.seeds, clearance)
+    episodes = plan_episodes(args.maps, methods, starts, args.seeds, exploration.world)
     check_output_folder(args.out)
     if remove_staging(args.out):
         log.info("removed half-written runs of an interrupted evaluation")

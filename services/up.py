@@ -162,8 +162,8 @@ def supervise(
 def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) -> int:
     """Spawn, supervise and stop everything; the exit code of the run."""
     # A bad world, start or override fails here in one line, before any process starts.
-    world = load_world(args.world)
     exploration = apply_overrides(ExplorationConfig(), args.overrides)
+    world = load_world(args.world).check_size(exploration.world.max_cells)
     start_cell(world, args.start, exploration.world.start_clearance_cells)
     check_output_folder(args.out or DEFAULT_RESULTS_DIR)
     runs = plan_runs(args)

@@ -78,17 +78,27 @@ class ZenohWorld:
         seq = self._next_seq.get(robot, 0)
         key = robot_key(self.run, robot_id(robot), "step")
         payload = StepRequest(seq, cells).encode(self.services)
-        for attempt in range(1, self.services.step_retries + 1):
-            message = self._ask(key, payload, (ScanReply, ErrorReply), self.services.step_timeout_s)
+        began = time.monotonic()
+        deadline = began + self.services.step_retries * self.services.step_timeout_s
+        pause, longest_pause = self.services.step_retry_pause_s
+        attempt = 0
+        while True:
+            attempt += 1
+            wait_s = max(min(self.services.step_timeout_s, deadline - time.monotonic()), 0.1)
+            message = self._ask(key, payload, (ScanReply, ErrorReply), wait_s)
             if isinstance(message, ErrorReply):
                 raise StepRefusedError(f"{key}: {message.message}")
             if message is not None:
                 self._next_seq[robot] = seq + 1
                 return message.to_scan()
-            log.warning("%s: no reply to step %d (attempt %d), retrying", key, seq, attempt)
+            if time.monotonic() + pause >= deadline:
+                break
+            log.warning("%s: no reply to step %d (query %d), asking again", key, seq, attempt)
+            time.sleep(pause)
+            pause = min(2 * pause, longest_pause)
         raise WorldUnavailableError(
-            f"{key}: the world did not answer step {seq} "
-            f"({self.services.step_retries} attempts of {self.services.step_timeout_s:g} s)"
+            f"{key}: the world did not answer step {seq} in "
+            f"{time.monotonic() - began:.1f} s ({attempt} queries)"
         )
 
     def _wait_for(self, key: str, kind: type[Message], deadline: float) -> Message:

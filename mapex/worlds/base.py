@@ -49,6 +49,19 @@ class World:
                 f"{self.valid_space.shape} must be 2-D maps of the same shape"
             )
 
+    def check_size(self, max_cells: int) -> World:
+        """This world, or a one-line WorldError when it has more than `max_cells` cells (the
+        `world.max_cells` setting), naming the `--set` that raises the limit."""
+        cells = self.occupancy.size
+        if cells > max_cells:
+            rows, cols = self.shape
+            raise WorldError(
+                f"world '{self.name}' has {cells:,} cells ({rows} x {cols}), above the limit of "
+                f"{max_cells:,}: predictions on it would time out; raise the limit with "
+                f"--set world.max_cells={cells} if the predictors are fast enough"
+            )
+        return self
+
     @property
     def shape(self) -> tuple[int, int]:
         return self.occupancy.shape  # type: ignore[return-value]

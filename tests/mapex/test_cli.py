@@ -55,6 +55,7 @@ def test_run_writes_the_results_folder(tmp_path):
         (["--start", "9000,40"], "start cell (9000, 40) is outside the map"),
         (["--precision", "float16"], "invalid choice"),
         (["--predictor", "classical", "--precision", "bfloat16"], "only the 'lama' predictor"),
+        (["--set", "world.max_cells=1000"], "above the limit of 1,000"),
     ],
 )
 def test_bad_input_gives_one_line_error(args, message):

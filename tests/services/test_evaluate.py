@@ -248,6 +248,7 @@ def _started_pids(log_path) -> list[str]:
         (["--maps", "generated:0", "--methods", "nearest,bogus"], "unknown method"),
         (["--maps", "generated:0", "--jobs", "0"], "--jobs must be at least 1"),
         (["--maps", "generated:0", "--starts", "7"], "start poses 0-3"),
+        (["--maps", "generated:0", "--set", "world.max_cells=1000"], "above the limit of 1,000"),
         (["--maps", "generated:0", "--starts-file", "{file}"], "map 'generated:0' needs a"),
         (["--maps", "generated:1", "--starts-file", "{walls}"], "no starts for map 'generated:1'"),
         (["--maps", "generated:0", "--starts-file", "{missing}"], "No such file"),

@@ -209,6 +209,7 @@ def test_services_joined_only_through_a_router_run_an_episode(tmp_path):
         (["--start", "0,0"], "world 'generated:0': start cell (0, 0) is on a wall"),
         (["--start", "20,20", "--robots", "2"], "a cell --start places one robot"),
         (["--out", "README.md"], "cannot write results to README.md"),
+        (["--set", "world.max_cells=1000"], "--set world.max_cells="),
     ],
 )
 def test_bad_flags_fail_in_one_line(args, message):

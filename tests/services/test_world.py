@@ -7,19 +7,28 @@ whatever happens.
 
 from __future__ import annotations
 
+import re
 import signal
 import subprocess
 import sys
+import time
 
 import msgpack
 import numpy as np
 import pytest
-from service_processes import REPO_ROOT, STOP_DEADLINE_S, ServiceProcesses, until
+from service_processes import (
+    REPO_ROOT,
+    STOP_DEADLINE_S,
+    ServiceProcesses,
+    free_loopback_port,
+    until,
+)
 
 from mapex.config import ExplorationConfig, SensorConfig
 from mapex.simulator import Simulator
 from mapex.worlds import load_world, start_poses
 from services.codec import encode_array, pack_message
+from services.config import ServicesConfig
 from services.keys import alive_world_key, robot_id, robot_key, run_key
 from services.messages import (
     ErrorReply,
@@ -32,6 +41,7 @@ from services.messages import (
     decode_message,
 )
 from services.world import StartError, WorldServer
+from services.world_client import WorldUnavailableError, ZenohWorld
 from services.zenoh_config import open_session, zenoh_config
 
 WORLD_SPEC = "generated:3"
@@ -315,3 +325,21 @@ def test_world_server_knows_its_robots_starts_and_world(world):
 def test_world_server_refuses_bad_starts(world, starts, match):
     with pytest.raises(StartError, match=match):
         WorldServer(world, starts, SMALL)
+
+
+def test_a_gone_world_is_asked_again_with_back_off_for_the_whole_wait():
+    """A step query nobody serves returns at once: the planner keeps asking, with growing
+    pauses, until step_retries x step_timeout_s has passed, and says so honestly."""
+    services = ServicesConfig(step_timeout_s=0.5, step_retries=2, step_retry_pause_s=(0.05, 0.2))
+    session = open_session(zenoh_config("peer", [], [f"tcp/127.0.0.1:{free_loopback_port()}"]))
+    try:
+        began = time.monotonic()
+        with pytest.raises(WorldUnavailableError) as info:
+            ZenohWorld(session, "nobody", services).scan(0)
+        elapsed_s = time.monotonic() - began
+    finally:
+        session.close()
+    found = re.search(r"did not answer step 0 in ([\d.]+) s \((\d+) queries\)", str(info.value))
+    assert found is not None, str(info.value)
+    assert 0.8 <= float(found.group(1)) <= elapsed_s + 0.05 <= 5.0
+    assert int(found.group(2)) >= 4  # asked again and again, not three times in a few ms
