@@ -44,6 +44,8 @@ def check_output_folder(folder: Path) -> Path:
     """Create `folder` and write and remove a probe file in it, so that a bad output place
     (a file, no permission, a full disk) is found before any work, not after the run."""
     folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise OutputError(f"cannot write results to {folder}: it is a file")
     try:
         folder.mkdir(parents=True, exist_ok=True)
         probe = folder / f".probe-{os.getpid()}"

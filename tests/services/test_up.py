@@ -208,7 +208,7 @@ def test_services_joined_only_through_a_router_run_an_episode(tmp_path):
         (["--start", "4"], "corners are 0-3"),
         (["--start", "0,0"], "world 'generated:0': start cell (0, 0) is on a wall"),
         (["--start", "20,20", "--robots", "2"], "a cell --start places one robot"),
-        (["--out", "README.md"], "cannot write results to README.md"),
+        (["--out", "README.md"], "cannot write results to README.md: it is a file"),
         (["--set", "world.max_cells=1000"], "--set world.max_cells="),
     ],
 )
