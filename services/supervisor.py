@@ -87,6 +87,7 @@ class Supervisor:
         )
         self.services = services
         self.restarts: dict[str, int] = {}
+        self.last_lines: dict[str, str] = {}  # each child's last non-empty output line
         self._children: dict[str, _Child] = {}
         self._forwarders: list[threading.Thread] = []
         self._sink_lock = threading.Lock()
@@ -245,6 +246,8 @@ class Supervisor:
         with stream:
             for raw in stream:
                 text = raw.decode(errors="replace").rstrip("\r\n")
+                if text.strip():
+                    self.last_lines[name] = text.strip()
                 self._emit(f"[{name}] {text}")
 
     def _log(self, message: str) -> None:

@@ -46,7 +46,7 @@ from services.keys import ID_MAX_CHARS, is_valid_id, robot_id
 from services.messages import PoseMessage
 from services.pool import RunProgress, add_pool_arguments, hub_session_config, worker_specs
 from services.serving import configure_logging, stop_on_signals
-from services.supervisor import ProcessSpec, Supervisor
+from services.supervisor import ProcessSpec, Supervisor, describe_exit
 from services.zenoh_config import (
     HUB_HELP,
     ZenohConfigError,
@@ -130,18 +130,28 @@ def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str
 def supervise(
     supervisor: Supervisor,
     planners: list[ProcessSpec],
+    worlds: list[ProcessSpec],
     progress: RunProgress,
     runs: list[Run],
     total_steps: int,
     stop: threading.Event,
     show_progress: bool,
 ) -> int:
-    """Poll until every planner exits (or `stop`); return the exit code of the whole run."""
+    """Poll until every planner exits (or `stop`); return the exit code of the whole run.
+
+    A world that exits while planners still run ends the whole run at once, with the
+    world's own last line: its robots' poses, sequence numbers and scans live only in that
+    process, so a restarted world could not resume the run soundly.
+    """
     pending = {spec.name for spec in planners}
     failed: list[str] = []
     with tqdm(total=total_steps, unit="step", disable=not show_progress, file=sys.stderr) as bar:
         while pending and not stop.is_set():
             supervisor.poll()
+            gone = _gone_world(supervisor, worlds)
+            if gone is not None:
+                log.error("%s", gone)
+                return EXIT_FAILED
             for name in sorted(pending):
                 code = supervisor.returncode(name)
                 if code is not None:
@@ -178,12 +188,26 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
             supervisor.start(spec)
         total = args.steps * sum(len(run.starts) for run in runs)
         return supervise(
-            supervisor, specs["planners"], progress, runs, total, stop, not args.no_progress
-        )
+            supervisor, specs["planners"], specs["worlds"], progress, runs, total, stop,
+            not args.no_progress,
+        )  # fmt: skip
     finally:
         supervisor.stop()
         progress.close()
         session.close()
+
+
+def _gone_world(supervisor: Supervisor, worlds: list[ProcessSpec]) -> str | None:
+    """A line naming the first world process that has exited, with its last output line."""
+    for spec in worlds:
+        code = supervisor.returncode(spec.name)
+        if code is not None:
+            said = supervisor.last_lines.get(spec.name, "no output")
+            return (
+                f"{spec.name} exited with {describe_exit(code)} before its run ended "
+                f"({said}): stopping the run"
+            )
+    return None
 
 
 def build_parser() -> argparse.ArgumentParser:

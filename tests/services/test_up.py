@@ -155,6 +155,31 @@ def test_a_worker_killed_mid_run_is_restarted_and_the_run_completes(tmp_path):
     assert len(up.children()["predictor-g"]) == 2
 
 
+def test_a_world_killed_mid_run_ends_the_run_at_once_naming_it(tmp_path):
+    up, endpoint = start_up(tmp_path, "wkill", "--method", "nearest", "--steps", "1000")
+    session = open_session(zenoh_config(connect=[endpoint], listen=[]))
+    steps = []
+    subscriber = session.declare_subscriber(
+        robot_key("wkill-0", "r0", "pose"),
+        lambda sample: steps.append(PoseMessage.decode(sample.payload.to_bytes()).t),
+    )
+    try:
+        until(lambda: steps and steps[-1] >= 50, "the run to reach step 50", 300)
+        os.kill(up.children()["world-wkill-0"][0], signal.SIGKILL)
+        killed_at = time.monotonic()
+        assert up.wait(60) == 1, up.log()
+        ended_s = time.monotonic() - killed_at
+    finally:
+        subscriber.undeclare()
+        session.close()
+        up.kill()
+    assert ended_s < 15, ended_s  # not the planner's whole step wait
+    assert "world-wkill-0 exited with -9 (SIGKILL) before its run ended" in up.log()
+    assert not (tmp_path / "runs" / "wkill-0-r0").exists()
+    for pids in up.children().values():
+        assert not any(pid_alive(pid) for pid in pids)
+
+
 def test_ctrl_c_leaves_no_process_behind(tmp_path):
     up, endpoint = start_up(tmp_path, "stop", "--method", "nearest", "--steps", "1000")
     try:
