@@ -129,22 +129,28 @@ def test_distributed_run_equals_in_process_run_and_a_viewer_sees_its_maps(tmp_pa
     assert (tmp_path / "watch.gif").stat().st_size > 0
 
 
-def test_a_worker_killed_mid_run_is_restarted_and_the_run_completes(tmp_path):
-    up, endpoint = start_up(tmp_path, "kill", "--method", "mapex", "--steps", "1000")
+def kill_child_at_step(up: UpProcess, endpoint: str, run: str, child: str, step: int) -> None:
+    """SIGKILL `up`'s child named `child` once robot r0 of `run` has reached `step`."""
     session = open_session(zenoh_config(connect=[endpoint], listen=[]))
     steps = []
     subscriber = session.declare_subscriber(
-        robot_key("kill-0", "r0", "pose"),
+        robot_key(run, "r0", "pose"),
         lambda sample: steps.append(PoseMessage.decode(sample.payload.to_bytes()).t),
     )
     try:
-        until(lambda: steps and steps[-1] >= 100, "the run to reach step 100", 300)
-        victim = up.children()["predictor-g"][0]
-        os.kill(victim, signal.SIGKILL)
-        assert up.wait() == 0, up.log()
+        until(lambda: steps and steps[-1] >= step, f"the run to reach step {step}", 300)
+        os.kill(up.children()[child][0], signal.SIGKILL)
     finally:
         subscriber.undeclare()
         session.close()
+
+
+def test_a_worker_killed_mid_run_is_restarted_and_the_run_completes(tmp_path):
+    up, endpoint = start_up(tmp_path, "kill", "--method", "mapex", "--steps", "1000")
+    try:
+        kill_child_at_step(up, endpoint, "kill-0", "predictor-g", 100)
+        assert up.wait() == 0, up.log()
+    finally:
         up.kill()
     metrics, trajectory, curves = read_run(tmp_path / "runs" / "kill-0-r0")
     assert metrics["steps"] == 1000 and int(curves[-1][0]) == 1000
@@ -157,21 +163,12 @@ def test_a_worker_killed_mid_run_is_restarted_and_the_run_completes(tmp_path):
 
 def test_a_world_killed_mid_run_ends_the_run_at_once_naming_it(tmp_path):
     up, endpoint = start_up(tmp_path, "wkill", "--method", "nearest", "--steps", "1000")
-    session = open_session(zenoh_config(connect=[endpoint], listen=[]))
-    steps = []
-    subscriber = session.declare_subscriber(
-        robot_key("wkill-0", "r0", "pose"),
-        lambda sample: steps.append(PoseMessage.decode(sample.payload.to_bytes()).t),
-    )
     try:
-        until(lambda: steps and steps[-1] >= 50, "the run to reach step 50", 300)
-        os.kill(up.children()["world-wkill-0"][0], signal.SIGKILL)
+        kill_child_at_step(up, endpoint, "wkill-0", "world-wkill-0", 50)
         killed_at = time.monotonic()
         assert up.wait(60) == 1, up.log()
         ended_s = time.monotonic() - killed_at
     finally:
-        subscriber.undeclare()
-        session.close()
         up.kill()
     assert ended_s < 15, ended_s  # not the planner's whole step wait
     assert "world-wkill-0 exited with -9 (SIGKILL) before its run ended" in up.log()
