@@ -77,12 +77,10 @@ def predictor_options(args: argparse.Namespace) -> dict:
 def run_command(args: argparse.Namespace) -> int:
     from mapex.episode import run_episode
     from mapex.results import (
-        DEFAULT_RESULTS_DIR,
         OutputError,
-        check_output_folder,
-        check_run_folder,
+        check_destination,
         describe_end,
-        run_name,
+        destination,
         write_results,
     )
 
@@ -91,7 +89,7 @@ def run_command(args: argparse.Namespace) -> int:
     config = apply_overrides(ExplorationConfig(steps=args.steps), args.overrides)
     world = load_world(args.world).check_size(config.world.max_cells)
     start_cell(world, args.start, config.world.start_clearance_cells)  # a bad start: no work
-    check_run_folder(args.out) if args.out else check_output_folder(DEFAULT_RESULTS_DIR)
+    check_destination(args.out)
     predictor = make_predictor(args.predictor, **predictor_options(args))
     with tqdm(
         total=config.steps,
@@ -109,7 +107,7 @@ def run_command(args: argparse.Namespace) -> int:
             config,
             on_step=lambda t, *_: bar.update(t - bar.n),
         )
-    out_dir = args.out or DEFAULT_RESULTS_DIR / run_name(result)
+    out_dir = destination(args.out, result)
     try:
         write_results(result, world, out_dir)
     except OutputError as error:

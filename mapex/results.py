@@ -43,9 +43,7 @@ class OutputError(OSError):
 def check_output_folder(folder: Path) -> Path:
     """Create `folder` and write and remove a probe file in it, so that a bad output place
     (a file, no permission, a full disk) is found before any work, not after the run."""
-    folder = Path(folder)
-    if folder.exists() and not folder.is_dir():
-        raise OutputError(f"cannot write results to {folder}: it is a file")
+    folder = _not_a_file(Path(folder))
     try:
         folder.mkdir(parents=True, exist_ok=True)
         probe = folder / f".probe-{os.getpid()}"
@@ -58,11 +56,25 @@ def check_output_folder(folder: Path) -> Path:
 
 def check_run_folder(out_dir: Path) -> Path:
     """A run folder can be written to `out_dir` (replacing an older run folder there)."""
-    out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise OutputError(f"cannot write results to {out_dir}: it is a file")
+    out_dir = _not_a_file(Path(out_dir))
     check_output_folder(out_dir.parent)
     return out_dir
+
+
+def check_destination(out: Path | None) -> None:
+    """Before any work: a run's folder can go to `out`, or (None) under DEFAULT_RESULTS_DIR."""
+    check_run_folder(out) if out else check_output_folder(DEFAULT_RESULTS_DIR)
+
+
+def destination(out: Path | None, result: EpisodeResult) -> Path:
+    """Where the run's folder goes: `out`, or DEFAULT_RESULTS_DIR / its run name."""
+    return out or DEFAULT_RESULTS_DIR / run_name(result)
+
+
+def _not_a_file(path: Path) -> Path:
+    if path.exists() and not path.is_dir():
+        raise OutputError(f"cannot write results to {path}: it is a file")
+    return path
 
 
 def run_name(result: EpisodeResult) -> str:

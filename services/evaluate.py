@@ -26,7 +26,6 @@ Every start is checked before anything runs (one line naming map and cell, exit 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import itertools
 import json
 import logging
@@ -35,7 +34,7 @@ import shutil
 import sys
 import threading
 import time
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from tqdm import tqdm
@@ -188,7 +187,7 @@ def config_difference(written: object, expected: dict | None, prefix: str = "") 
     configurations, looking only at fields both have (so a field added later does not count)."""
     if expected is None or not isinstance(written, dict):
         return None if expected is None else "configuration (none recorded)"
-    for key in expected.keys() & written.keys():
+    for key in sorted(expected.keys() & written.keys()):
         mine, theirs = expected[key], written[key]
         if isinstance(mine, dict):
             found = config_difference(theirs, mine, f"{prefix}{key}.")
@@ -290,7 +289,7 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
     check_output_folder(args.out)
     if remove_staging(args.out):
         log.info("removed half-written runs of an interrupted evaluation")
-    config = json.loads(json.dumps(dataclasses.asdict(replace(exploration, steps=args.steps))))
+    config = json.loads(json.dumps(asdict(replace(exploration, steps=args.steps))))
     todo = [e for e in episodes if not finished(e, args.out, config)]
     already = len(episodes) - len(todo)
     log.info("%d episodes: %d already finished, %d to run", len(episodes), already, len(todo))

@@ -41,15 +41,7 @@ from mapex.episode import EpisodeResult, run_episode
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
 from mapex.prediction.base import MEMBER_NAMES
-from mapex.results import (
-    DEFAULT_RESULTS_DIR,
-    OutputError,
-    check_output_folder,
-    check_run_folder,
-    describe_end,
-    run_name,
-    write_results,
-)
+from mapex.results import OutputError, check_destination, describe_end, destination, write_results
 from mapex.worlds import StartSpec, World, WorldError, load_world, start_label
 from mapex.worlds.starts import add_start_argument, start_cell, start_spec_of
 from services.codec import DEFAULT_SERVICES
@@ -184,7 +176,7 @@ def main(
     start: StartSpec | None = None,
 ) -> tuple[EpisodeResult, Path]:
     """Open a session, run the episode, write its results folder; return (result, folder)."""
-    check_run_folder(out) if out else check_output_folder(DEFAULT_RESULTS_DIR)
+    check_destination(out)
     session = open_session(config)
     try:
         result, world = explore(
@@ -194,7 +186,7 @@ def main(
         session.close()
     if supervisor_gone():  # the pool went down with it: the end of the run may be degraded
         raise PlannerError("the supervisor is gone: run abandoned, nothing written")
-    out_dir = out or DEFAULT_RESULTS_DIR / run_name(result)
+    out_dir = destination(out, result)
     try:
         write_results(result, world, out_dir)
     except OutputError as error:
