@@ -60,6 +60,9 @@ class EpisodeResult:
     wall_time_s: float = 0.0
     config: ExplorationConfig = field(default_factory=ExplorationConfig)
     degraded_samples: list[int] = field(default_factory=list)  # metric samples without G
+    degraded_from_start: str | None = None  # why the run was expected to degrade (size)
+    metric_workers: list[tuple[int, dict[str, str]]] = field(default_factory=list)  # (t, who
+    # answered G) of each metric sample's prediction served by remote workers
     snapshots: dict[int, tuple[np.ndarray, np.ndarray | None]] = field(default_factory=dict)
 
     @property
@@ -131,5 +134,6 @@ def run_episode(
         wall_time_s=time.perf_counter() - began,
         config=config,
         degraded_samples=recorder.degraded_samples,
+        metric_workers=recorder.member_workers,
         snapshots=recorder.snapshots,
     )

@@ -46,6 +46,8 @@ class ExplorerStats:
     approach_goals: int = 0  # goals standing in for an unreachable frontier point
     degraded_steps: list[int] = field(default_factory=list)  # re-plans lacking members
     fallback_steps: list[int] = field(default_factory=list)  # of those, scored on O_t only
+    member_workers: list[tuple[int, dict[str, str]]] = field(default_factory=list)  # (t, who
+    # answered each member) of every re-plan prediction served by remote workers
 
 
 class Explorer:
@@ -174,6 +176,8 @@ class Explorer:
 
     def _method_for(self, t: int, prediction: EnsemblePrediction | None) -> Method:
         """The method, or the observed-map fallback when too few members answered."""
+        if prediction is not None and prediction.workers is not None:
+            self.stats.member_workers.append((t, prediction.served_by()))
         if prediction is None or len(prediction.answered) == self.predictor.n_members:
             return self.method
         self.stats.degraded_steps.append(t)

@@ -65,6 +65,7 @@ class MetricRecorder:
         self.curves = MetricCurves()
         self.last_prediction: np.ndarray | None = None
         self.degraded_samples: list[int] = []
+        self.member_workers: list[tuple[int, dict[str, str]]] = []  # (t, who answered G)
         self.snapshots: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}  # t -> (O_t, G)
         self._pending: tuple[int, np.ndarray, Callable[[], EnsemblePrediction] | None] | None = None
 
@@ -138,6 +139,8 @@ class MetricRecorder:
     ) -> np.ndarray:
         """G's whole-map prediction (known cells copied through), or, without a predictor
         or when G did not answer, the observed map with unknown cells counted as free."""
+        if prediction is not None and prediction.workers is not None:
+            self.member_workers.append((t, prediction.served_by()))
         if prediction is not None and prediction.answered == (0,):
             main = prediction.main
         else:

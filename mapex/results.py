@@ -128,6 +128,11 @@ def summary(result: EpisodeResult) -> dict:
         "degraded_steps": result.stats.degraded_steps,
         "fallback_steps": result.stats.fallback_steps,
         "degraded_metric_samples": result.degraded_samples,
+        "degraded_from_start": result.degraded_from_start,
+        "member_workers": {  # who answered each member query (remote predictor workers)
+            "replans": [[t, served] for t, served in result.stats.member_workers],
+            "metric_samples": [[t, served] for t, served in result.metric_workers],
+        },
         "wall_time_s": round(result.wall_time_s, 3),
         "config": dataclasses.asdict(result.config),
     }

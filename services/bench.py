@@ -6,7 +6,10 @@ On one map (default: KTH 50015847, the largest development map) it measures
    one torch thread), from the episode loop's wall time in each run's metrics.json;
 2. a 1000-step `mapex` episode through `services.up`: wall time of the whole command
    (start-up included) and the peak total memory (RSS) of all its processes;
-3. two runs at once sharing the pool, with one worker per member and with two.
+3. two runs at once sharing the pool, with one worker per member and with two;
+4. what a hung worker costs (DESIGN: at most one timeout): a `--hung-steps` `mapex` run with
+   a g1 worker that stops answering after three predictions but keeps its session (started
+   by hand beside services.up's g, g2, g3), against the same run with four healthy workers.
 Each figure is a median over `--repeat` runs. Benchmarks print figures; they never fail.
 """
 
@@ -29,6 +32,7 @@ from mapex.config import ExplorationConfig
 from mapex.episode import run_episode
 from mapex.prediction.learned import LearnedEnsemble
 from mapex.worlds import load_world
+from services.codec import DEFAULT_SERVICES
 from services.supervisor import claim_hub
 
 MEMORY_POLL_S = 0.5
@@ -56,8 +60,12 @@ def tree_rss_kib(root_pid: int) -> int:
     return total
 
 
-def run_up(out_dir: Path, world: str, method: str, steps: int, *extra: str) -> dict:
-    """One `services.up` run: wall time, peak memory and the metrics.json of each run."""
+def run_up(
+    out_dir: Path, world: str, method: str, steps: int, *extra: str, hung: str | None = None
+) -> dict:
+    """One `services.up` run: wall time, peak memory and the metrics.json of each run.
+    `hung`: also start, by hand on the same hub, a worker of that member that hangs after
+    three predictions (services.up should then be told `--members` without it)."""
     port = 7480
     while not claim_hub(f"tcp/127.0.0.1:{port}"):
         port += 1
@@ -77,7 +85,17 @@ def run_up(out_dir: Path, world: str, method: str, steps: int, *extra: str) -> d
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
+    stuck = None
+    if hung is not None:
+        stuck = subprocess.Popen(
+            [sys.executable, "-m", "services.predictor", "--member", hung, "--worker-id",
+             "hung", "--hang-after", "3", "--connect", f"tcp/127.0.0.1:{port}"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
     code = process.wait()
+    if stuck is not None:
+        stuck.kill()
+        stuck.wait()
     wall_s = time.perf_counter() - began
     sampler.join()
     if code != 0:
@@ -108,17 +126,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pool-repeat", type=int, default=1, help="runs per pool figure")
     parser.add_argument(
         "--parts",
-        default="overhead,mapex,pool",
-        help="comma-separated subset of overhead,mapex,pool (default: all)",
+        default="overhead,mapex,pool,hung",
+        help="comma-separated subset of overhead,mapex,pool,hung (default: all)",
     )
+    parser.add_argument("--hung-steps", type=int, default=300, help="steps of the hung runs")
     args = parser.parse_args(argv)
     print(f"world {args.world}, {args.steps} steps, median of {args.repeat}", flush=True)
     with tempfile.TemporaryDirectory() as scratch:
         root = Path(scratch)
 
-        def ups(name: str, method: str, *extra: str, repeat: int = args.repeat) -> list[dict]:
+        def ups(
+            name: str, method: str, *extra: str, repeat: int = args.repeat, **options
+        ) -> list[dict]:
+            steps = options.pop("steps", args.steps)
             return [
-                run_up(root / f"{name}{i}", args.world, method, args.steps, *extra)
+                run_up(root / f"{name}{i}", args.world, method, steps, *extra, **options)
                 for i in range(repeat)
             ]
 
@@ -129,6 +151,8 @@ def main(argv: list[str] | None = None) -> int:
             bench_mapex(ups)
         if "pool" in parts:
             bench_pool(args, ups)
+        if "hung" in parts:
+            bench_hung_worker(args, ups)
     return 0
 
 
@@ -159,6 +183,23 @@ def bench_pool(args: argparse.Namespace, ups) -> None:
         shared = ups(f"pool{replicas}-", "mapex", *extra, repeat=args.pool_repeat)
         name = f"two mapex runs at once, {replicas} worker(s) per member (median of {len(shared)})"
         line(name, _median(shared, "wall_s"), "s")
+
+
+def bench_hung_worker(args: argparse.Namespace, ups) -> None:
+    """Item 4: a run with a hung g1 worker against one with four healthy workers."""
+    steps = args.hung_steps
+    healthy = ups("healthy", "mapex", steps=steps)
+    hung = ups("hung", "mapex", "--members", "g,g2,g3", steps=steps, hung="g1")
+    loop = lambda runs: statistics.median(run["runs"][0]["wall_time_s"] for run in runs)  # noqa: E731
+    degraded = statistics.median(len(run["runs"][0]["degraded_steps"]) for run in hung)
+    replans = statistics.median(run["runs"][0]["replans"] for run in hung)
+    line(f"mapex episode loop, {steps} steps, four healthy workers", loop(healthy), "s")
+    line(f"mapex episode loop, {steps} steps, g1 worker hung", loop(hung), "s")
+    timeout_s = DEFAULT_SERVICES.predict_timeout_s
+    line("steps slowed by the hung worker (extra loop time)", loop(hung) - loop(healthy), "s",
+         timeout_s)  # fmt: skip
+    line("  re-plans / degraded re-plans of the hung run", replans, f"/ {degraded:g}")
+    line("  the same, if every query waited the timeout (bound)", degraded * timeout_s, "s")
 
 
 def _median(runs: list[dict], key: str) -> float:

@@ -140,6 +140,16 @@ class FieldReader:
         """A float field that may be nil."""
         return None if self._is_nil(name) else self.number(name)
 
+    def added_number(self, name: str) -> float | None:
+        """A float field added to v1 later: None when nil or absent (older senders)."""
+        return self.optional_number(name) if name in self._fields else None
+
+    def added_text(self, name: str) -> str | None:
+        """A str field added to v1 later: None when nil or absent (older senders)."""
+        if name not in self._fields or self._is_nil(name):
+            return None
+        return self.text(name)
+
     def cell(self, name: str) -> tuple[int, int]:
         """A (row, col) field sent as a two-integer list."""
         value = self._take(name)

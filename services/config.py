@@ -17,6 +17,14 @@ class ServicesConfig:
     hub_endpoint: str = "tcp/127.0.0.1:7447"  # well-known loopback endpoint served by services.up
     ephemeral_listen_endpoint: str = "tcp/127.0.0.1:0"  # default listener: loopback, any free port
     predict_timeout_s: float = 10.0  # per-member prediction query; a hung worker costs this once
+    predict_max_cells: int = 8_000_000  # maps above this are expected to miss the prediction
+    # timeout (one whole-map G prediction: ~0.6 us/cell on one laptop-CPU thread, so 8 M cells
+    # ~5 s, twice that with four workers on two cores): the run is marked degraded at start
+    health_probe_every_s: float = 1.0  # planner: how often a benched worker is probed again
+    health_probe_timeout_s: float = 2.0  # one health probe (answered at once by a live worker)
+    health_check_every_s: float = 5.0  # services.up: how often its workers are probed
+    unresponsive_after_s: float = 30.0  # services.up restarts a worker stuck (busy on one
+    # prediction, or not answering probes) this long
     supervision_poll_s: float = 0.2  # services.up / evaluate: how often children are checked
     publish_period_s: float = 0.1  # planner -> viewers: at most one batch of maps per period
     predict_retries: int = 3  # re-sends of a query that no worker was routed (no reply at all)

@@ -7,8 +7,11 @@ of that member: replicas share the load and every query is answered by exactly o
 A member whose worker times out, refuses, sends an invalid reply or has no live worker is
 left out, and the result says which members answered (`member_ids`) and which worker served
 each (`workers`): the planner goes on with those (docs/design.md#reliability) and records
-the step as degraded. Its interface is that of every `Predictor`: `predict`,
-`predict_later`, `wait` and `close`.
+the step as degraded. A worker that let a query time out is *benched*: it gets no query
+until it answers a health probe saying it is not stuck in a prediction, so a hung worker
+costs one timeout, not one per query. Each request carries its budget (the timeout), so the
+worker drops what it dequeues after the planner gave up. Its interface is that of every
+`Predictor`: `predict`, `predict_later`, `wait` and `close`.
 """
 
 from __future__ import annotations
@@ -33,10 +36,11 @@ from mapex.prediction.base import (
 from mapex.prediction.config import NetworkConfig
 from services.codec import DEFAULT_SERVICES, ProtocolError
 from services.config import ServicesConfig
-from services.keys import AliveKey, alive_predictor_pattern, parse_key, predict_key
-from services.messages import ErrorReply, PredictReply, PredictRequest, decode_message
+from services.keys import AliveKey, alive_predictor_pattern, health_key, parse_key, predict_key
+from services.messages import ErrorReply, HealthReply, PredictReply, PredictRequest, decode_message
 
 _WAIT_POLL_S = 0.02  # polling step of `wait`
+_ZENOH_TIMEOUT = b"Timeout"  # the error payload Zenoh ends a timed-out query with
 
 log = logging.getLogger("services.ensemble_client")
 
@@ -86,6 +90,7 @@ class ZenohEnsemble(Predictor):
         self.services = services
         self._lock = threading.Lock()
         self._live: dict[str, dict[str, int]] = {name: {} for name in MEMBER_NAMES}  # -> last use
+        self._benched: dict[tuple[str, str], float] = {}  # (member, worker) -> next probe time
         self._ticks = itertools.count(1)
         self._request_ids = itertools.count()
         pattern = alive_predictor_pattern()
@@ -102,6 +107,12 @@ class ZenohEnsemble(Predictor):
         """The live worker ids of every member (sorted), as the liveliness tokens say now."""
         with self._lock:
             return {name: tuple(sorted(workers)) for name, workers in self._live.items()}
+
+    def benched_workers(self) -> dict[str, tuple[str, ...]]:
+        """The workers of every member (sorted) that get no query until a probe clears them."""
+        with self._lock:
+            benched = sorted(self._benched)
+        return {name: tuple(w for m, w in benched if m == name) for name in MEMBER_NAMES}
 
     def wait(
         self, timeout_s: float = 10.0, members: Sequence[str] = MEMBER_NAMES, count: int = 1
@@ -137,18 +148,66 @@ class ZenohEnsemble(Predictor):
                 workers.setdefault(parsed.worker_id, 0)
             else:
                 workers.pop(parsed.worker_id, None)
+            self._benched.pop((parsed.member, parsed.worker_id), None)  # a new incarnation
         change = "joined" if alive else "left"
         log.info("worker %s of member %s %s", parsed.worker_id, parsed.member, change)
 
     def _choose_worker(self, member: str) -> str | None:
-        """The least recently used live worker of `member` (ties by id), now marked used."""
+        """The least recently used live, unbenched worker of `member` (ties by id), now
+        marked used; benched workers due for a health probe are probed first."""
+        self._probe_benched(member)
         with self._lock:
-            workers = self._live[member]
+            workers = {
+                w: used
+                for w, used in self._live[member].items()
+                if (member, w) not in self._benched
+            }
             if not workers:
                 return None
             worker_id = min(workers, key=lambda w: (workers[w], w))
-            workers[worker_id] = next(self._ticks)
+            self._live[member][worker_id] = next(self._ticks)
             return worker_id
+
+    def _bench(self, member: str, worker_id: str) -> None:
+        with self._lock:
+            self._benched[(member, worker_id)] = (
+                time.monotonic() + self.services.health_probe_every_s
+            )
+        log.warning(
+            "member %s: worker %s benched after a timeout (no queries until it answers a "
+            "health probe)", member, worker_id,
+        )  # fmt: skip
+
+    def _probe_benched(self, member: str) -> None:
+        """Send a health probe to each benched worker of `member` whose probe is due."""
+        now = time.monotonic()
+        with self._lock:
+            due = [w for (m, w), at in self._benched.items() if m == member and at <= now]
+            for worker_id in due:
+                self._benched[(member, worker_id)] = now + self.services.health_probe_every_s
+        for worker_id in due:
+            self.session.get(
+                health_key(member, worker_id),
+                self._on_probe_reply,
+                timeout=self.services.health_probe_timeout_s,
+            )
+
+    def _on_probe_reply(self, reply: zenoh.Reply) -> None:
+        """Un-bench a worker whose health reply says it is not stuck in a prediction."""
+        if reply.ok is None:
+            return
+        try:
+            health = HealthReply.decode(reply.ok.payload.to_bytes(), self.services)
+        except ProtocolError as error:
+            log.warning("ignored a health reply: %s", error)
+            return
+        if health.busy_s >= self.services.predict_timeout_s:
+            return  # still stuck in one prediction
+        with self._lock:
+            back = self._benched.pop((health.member, health.worker_id), None) is not None
+        if back:
+            log.info("member %s: worker %s answered a health probe: back in use",
+                     health.member, health.worker_id)  # fmt: skip
 
     # ------------------------------------------------------------------ prediction
 
@@ -210,7 +269,8 @@ class ZenohEnsemble(Predictor):
         if crop.size == 0:  # nothing to predict (PredictRequest needs a non-empty map)
             return _Inflight(-1, b"", crop.shape, members, [])
         request_id = next(self._request_ids)
-        payload = PredictRequest(request_id, crop).encode(self.services)
+        budget_s = self.services.predict_timeout_s
+        payload = PredictRequest(request_id, crop, budget_s).encode(self.services)
         sent = [p for p in (self._send(k, payload) for k in members) if p is not None]
         return _Inflight(request_id, payload, crop.shape, members, sent)
 
@@ -262,6 +322,8 @@ class ZenohEnsemble(Predictor):
             if problem is None:
                 return message, True
             log.warning("member %s: %s gave no prediction: %s", name, where, problem)
+        if any(_timed_out(reply) for reply in replies):
+            self._bench(name, pending.worker_id)
         return None, True
 
     def _check_reply(
@@ -277,6 +339,11 @@ class ZenohEnsemble(Predictor):
             return None, str(error)
         problem = _reply_problem(message, request_id, member, shape)
         return (message, None) if problem is None else (None, problem)
+
+
+def _timed_out(reply: zenoh.Reply) -> bool:
+    """Whether `reply` is Zenoh's own end of a query that timed out."""
+    return reply.err is not None and reply.err.payload.to_bytes() == _ZENOH_TIMEOUT
 
 
 def _reply_problem(

@@ -29,6 +29,7 @@ import argparse
 import itertools
 import json
 import logging
+import os
 import shlex
 import shutil
 import sys
@@ -55,6 +56,7 @@ from mapex.worlds import StartSpec, WorldError, load_world
 from mapex.worlds.starts import start_argument, start_cell, start_label
 from services.codec import DEFAULT_SERVICES
 from services.config import ServicesConfig
+from services.health import PoolWatch
 from services.keys import ID_MAX_CHARS
 from services.messages import MetricsMessage
 from services.pool import RunProgress, add_pool_arguments, hub_session_config, worker_specs
@@ -246,8 +248,10 @@ def run_episodes(
     flags: list[str],
     progress: RunProgress,
     stop: threading.Event,
+    watch: PoolWatch | None = None,
 ) -> tuple[int, list[str]]:
-    """Run `todo`, `args.jobs` at a time; (episodes finished, failure lines)."""
+    """Run `todo`, `args.jobs` at a time; (episodes finished, failure lines). `watch` kills
+    stuck workers for the supervisor to restart."""
     queue, running, done, failures = list(todo), {}, 0, []
     bar = tqdm(
         total=len(todo) * args.steps,
@@ -259,6 +263,8 @@ def run_episodes(
     with bar:
         while (queue or running) and not stop.is_set():
             supervisor.poll()
+            if watch is not None:
+                watch.check()
             while queue and len(running) < args.jobs:
                 episode = queue.pop(0)
                 spec = planner_spec(episode, args, args.out, flags)
@@ -298,13 +304,20 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
     session = open_session(own_config)
     progress = RunProgress(session, "metrics", MetricsMessage)
     supervisor = Supervisor(services=services)
+    workers = worker_specs(
+        args.members,
+        args.replicas,
+        args.threads,
+        flags,
+        args.precision,
+        id_prefix=f"ev{os.getpid()}",
+    )
+    watch = PoolWatch(session, supervisor, workers, services)
     try:
         if todo:
-            for spec in worker_specs(
-                args.members, args.replicas, args.threads, flags, args.precision
-            ):
+            for spec in workers:
                 supervisor.start(spec)
-        done, failures = run_episodes(supervisor, todo, args, flags, progress, stop)
+        done, failures = run_episodes(supervisor, todo, args, flags, progress, stop, watch)
     finally:
         supervisor.stop()
         progress.close()

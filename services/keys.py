@@ -4,11 +4,13 @@
 * per run: `mapex/@v1/<run>/ground_truth` and `mapex/@v1/<run>/world_info`;
 * predictor queryables: `mapex/@v1/predict/<member>/<worker_id>`; a planner sends each query
   to one chosen worker, so replicas of a member add throughput without duplicate work;
+* worker health probes: `mapex/@v1/health/<member>/<worker_id>` (answered at once, even while
+  the worker computes, with how long its current prediction has been running);
 * liveliness tokens: `mapex/@v1/alive/predict/<member>/<worker_id>`,
   `mapex/@v1/alive/world/<run>` and `mapex/@v1/alive/planner/<run>`.
 
-Run, robot and worker ids match `[a-z0-9_-]{1,ID_MAX_CHARS}`; "predict" and "alive" are not
-run ids (they would clash with the keys above).
+Run, robot and worker ids match `[a-z0-9_-]{1,ID_MAX_CHARS}`; "predict", "health" and "alive"
+are not run ids (they would clash with the keys above).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from services.codec import ProtocolError
 KEY_PREFIX = "mapex/@v1"
 
 MEMBERS = MEMBER_NAMES  # ensemble members; "g" is G
-RESERVED_RUN_IDS = frozenset({"predict", "alive"})
+RESERVED_RUN_IDS = frozenset({"predict", "health", "alive"})
 ROBOT_ID_PREFIX = "r"  # robot i of a run is "r<i>" in its keys
 ID_MAX_CHARS = 64  # part of the v1 contract, not a tunable
 _ID_PATTERN = re.compile(rf"[a-z0-9_-]{{1,{ID_MAX_CHARS}}}")
@@ -73,6 +75,14 @@ class PredictKey:
 
 
 @dataclass(frozen=True)
+class HealthKey:
+    """A parsed `mapex/@v1/health/<member>/<worker_id>`."""
+
+    member: str
+    worker_id: str
+
+
+@dataclass(frozen=True)
 class AliveKey:
     """A parsed liveliness key; `run` for world/planner, `member` and `worker_id` for predict."""
 
@@ -82,7 +92,7 @@ class AliveKey:
     worker_id: str | None = None
 
 
-ParsedKey = RobotKey | RunKey | PredictKey | AliveKey
+ParsedKey = RobotKey | RunKey | PredictKey | HealthKey | AliveKey
 
 
 def is_valid_id(value: object) -> bool:
@@ -115,6 +125,11 @@ def run_key(run: str, topic: RunTopic) -> str:
 def predict_key(member: str, worker_id: str) -> str:
     """The queryable of one predictor worker: `mapex/@v1/predict/<member>/<worker_id>`."""
     return f"{KEY_PREFIX}/predict/{_choice(member, MEMBERS)}/{_id(worker_id, 'worker')}"
+
+
+def health_key(member: str, worker_id: str) -> str:
+    """The health probe of one predictor worker: `mapex/@v1/health/<member>/<worker_id>`."""
+    return f"{KEY_PREFIX}/health/{_choice(member, MEMBERS)}/{_id(worker_id, 'worker')}"
 
 
 def alive_predictor_key(member: str, worker_id: str) -> str:
@@ -150,8 +165,9 @@ def parse_key(key: str) -> ParsedKey:
 
 def _parse_chunks(chunks: list[str]) -> ParsedKey | None:
     head, n = chunks[0], len(chunks)
-    if head == "predict" and n == 3 and chunks[1] in MEMBERS and is_valid_id(chunks[2]):
-        return PredictKey(chunks[1], chunks[2])
+    worker = n == 3 and chunks[1] in MEMBERS and is_valid_id(chunks[2])
+    if head in ("predict", "health") and worker:
+        return (PredictKey if head == "predict" else HealthKey)(chunks[1], chunks[2])
     if head == "alive":
         return _parse_alive(chunks[1:])
     if not _is_run_id(head):

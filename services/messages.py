@@ -103,23 +103,29 @@ class StepRequest(Message):
     answers a repeat of the last seq it served with the same reply without moving the robot
     again, so a retry after a lost reply is harmless; any other seq is refused.
     k = 0 asks for a scan where the robot stands (seq 0: the initial scan before t = 0).
-    The reply is a ScanReply.
+    run_token: the run's secret (services.up gives it to the world and its planners); a
+    world started with a token refuses every step without it. The reply is a ScanReply.
     """
 
     TYPE: ClassVar[str] = "step_request"
     seq: int
     cells: np.ndarray
+    run_token: str | None = None
 
     def __post_init__(self) -> None:
         _set(self, "seq", _checked_count(self.TYPE, "seq", self.seq))
         _set(self, "cells", _checked_cells(self.TYPE, "cells", self.cells))
+        if self.run_token is not None:
+            _set(self, "run_token", _one_line(self.TYPE, "run_token", self.run_token))
 
     def _fields(self, config: ServicesConfig) -> dict[str, Any]:
-        return {"seq": self.seq, "cells": encode_array(self.cells, config)}
+        fields = {"seq": self.seq, "cells": encode_array(self.cells, config)}
+        return fields if self.run_token is None else {**fields, "run_token": self.run_token}
 
     @classmethod
     def _read(cls, reader: FieldReader) -> StepRequest:
-        return cls(reader.integer("seq"), reader.array("cells", "int32", 2))
+        seq, cells = reader.integer("seq"), reader.array("cells", "int32", 2)
+        return cls(seq, cells, reader.added_text("run_token"))
 
 
 @dataclass(frozen=True, eq=False)
@@ -188,23 +194,30 @@ class PredictRequest(Message):
     """Planner -> one predictor worker: predict the unknown cells of an observed-map crop.
 
     observed: uint8 (h, w) codes of `mapex.grid` (FREE, UNKNOWN, OCCUPIED).
+    budget_s: how long the planner waits for the reply; a worker drops a request that
+    waited longer than this in its queue (the planner has given up on it). None: no limit.
     """
 
     TYPE: ClassVar[str] = "predict_request"
     request_id: int
     observed: np.ndarray
+    budget_s: float | None = None
 
     def __post_init__(self) -> None:
         _set(self, "request_id", _checked_count(self.TYPE, "request_id", self.request_id))
         _check_map(self.TYPE, "observed", self.observed, np.uint8)
         _check_codes(self.TYPE, "observed", self.observed)
+        if self.budget_s is not None:
+            _set(self, "budget_s", _checked_number(self.TYPE, "budget_s", self.budget_s))
 
     def _fields(self, config: ServicesConfig) -> dict[str, Any]:
-        return {"request_id": self.request_id, "observed": encode_array(self.observed, config)}
+        observed = encode_array(self.observed, config)
+        return {"request_id": self.request_id, "observed": observed, "budget_s": self.budget_s}
 
     @classmethod
     def _read(cls, reader: FieldReader) -> PredictRequest:
-        return cls(reader.integer("request_id"), reader.array("observed", "uint8", 2))
+        request_id, observed = reader.integer("request_id"), reader.array("observed", "uint8", 2)
+        return cls(request_id, observed, reader.added_number("budget_s"))
 
 
 @dataclass(frozen=True, eq=False)
@@ -523,6 +536,49 @@ class GroundTruth(Message):
     @classmethod
     def _read(cls, reader: FieldReader) -> GroundTruth:
         return cls(reader.array("occupancy", "bool", 2), reader.array("valid_space", "bool", 2))
+
+
+@dataclass(frozen=True)
+class HealthReply(Message):
+    """Predictor worker -> prober, on `health`: answered at once, even mid-prediction.
+
+    busy_s: how long the prediction being computed has been running (0 when idle), so a
+    worker stuck in one (a deadlock, a stuck GPU) shows as busy for ever; queued: requests
+    waiting behind it; answered and dropped (past their budget) since the worker started.
+    """
+
+    TYPE: ClassVar[str] = "health"
+    member: str
+    worker_id: str
+    busy_s: float
+    queued: int
+    answered: int
+    dropped: int
+
+    def __post_init__(self) -> None:
+        if self.member not in MEMBERS:
+            raise ProtocolError(f"{self.TYPE}: member {self.member!r} is not one of {MEMBERS}")
+        if not is_valid_id(self.worker_id):
+            raise ProtocolError(f"{self.TYPE}: worker_id {self.worker_id!r} is not a valid id")
+        _set(self, "busy_s", _checked_number(self.TYPE, "busy_s", self.busy_s))
+        for name in ("queued", "answered", "dropped"):
+            _set(self, name, _checked_count(self.TYPE, name, getattr(self, name)))
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        return {
+            "member": self.member, "worker_id": self.worker_id, "busy_s": self.busy_s,
+            "queued": self.queued, "answered": self.answered, "dropped": self.dropped,
+        }  # fmt: skip
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> HealthReply:
+        member, worker_id, busy_s = (
+            reader.text("member"),
+            reader.text("worker_id"),
+            reader.number("busy_s"),
+        )
+        counts = (reader.integer(name) for name in ("queued", "answered", "dropped"))
+        return cls(member, worker_id, busy_s, *counts)
 
 
 @dataclass(frozen=True)

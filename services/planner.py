@@ -14,13 +14,15 @@ the re-plan scores frontiers on the observed map, and the record lists those ste
 results folder as `python -m mapex run`. With `--world SPEC --start S` the planner simulates
 the world itself (no world process; batch evaluation runs episodes this way) and still asks
 the predictor pool. A start S is a corner 0-3 or a cell ROW,COL; against a world process,
-`--start` names the start the world placed the robot at (checked; the run is named by it).
-Bad flags or starts: one line, exit 2; the world gone or refusing a step: one line, exit 1.
+`--start` names the start the world placed the robot at (checked; the run is named by it),
+and every step carries the run token of `MAPEX_RUN_TOKEN` when that is set (services.up sets
+it). Bad flags or starts: one line, exit 2; the world gone or refusing a step: one line, exit 1.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 import threading
@@ -49,7 +51,7 @@ from services.config import ServicesConfig
 from services.ensemble_client import ZenohEnsemble
 from services.keys import ID_MAX_CHARS, alive_planner_key, is_valid_id, robot_id
 from services.publishing import RunPublisher
-from services.serving import configure_logging, supervisor_gone
+from services.serving import configure_logging, run_token_from_env, supervisor_gone
 from services.world_client import StepRefusedError, WorldUnavailableError, ZenohWorld
 from services.zenoh_config import (
     ZenohConfigError,
@@ -92,11 +94,14 @@ def explore(
     it must have placed the robot at (default: whichever it did)."""
     exploration = exploration or ExplorationConfig()
     if local is None:
-        source = ZenohWorld(session, run, services)
+        source = ZenohWorld(session, run, services, run_token_from_env())
         world, start = _remote_start(source, run, robot, exploration, start)
     else:
         source, world, start = None, load_world(local.spec), local.start
         start_cell(world, start, exploration.world.start_clearance_cells)  # WorldError if bad
+    oversized = prediction_size_warning(world.shape, services)
+    if oversized is not None:
+        log.warning("%s", oversized)
     publisher = RunPublisher(session, run, robot_id(robot), services)
     token = session.liveliness().declare_token(alive_planner_key(run))
     try:
@@ -117,6 +122,7 @@ def explore(
                 world, method, ensemble, start, seed, exploration, on_step,
                 source=source, robot=robot,
             )  # fmt: skip
+        result = dataclasses.replace(result, degraded_from_start=oversized)
         publisher.finished(result, _summary_line(result))
     except Exception as error:
         publisher.status(0, "failed", f"{type(error).__name__}: {error}")
@@ -125,6 +131,19 @@ def explore(
         publisher.close()
         token.undeclare()
     return result, world
+
+
+def prediction_size_warning(shape: tuple[int, int], services: ServicesConfig) -> str | None:
+    """Why a map of `shape` cells is expected to degrade the run (its whole-map predictions
+    would miss `predict_timeout_s`), or None when it is small enough."""
+    cells = shape[0] * shape[1]
+    if cells <= services.predict_max_cells:
+        return None
+    return (
+        f"the map has {cells:,} cells, above the {services.predict_max_cells:,} that a "
+        f"prediction is expected to handle within {services.predict_timeout_s:g} s: "
+        "predictions may time out and the run is marked degraded from the start"
+    )
 
 
 def _remote_start(

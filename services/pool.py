@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import logging
 import threading
+from dataclasses import dataclass
 
 import zenoh
 
@@ -50,25 +51,40 @@ def add_pool_arguments(parser: argparse.ArgumentParser) -> None:
     add_precision_argument(parser)
 
 
+@dataclass(frozen=True)
+class WorkerSpec(ProcessSpec):
+    """A predictor-worker child: its member and the worker id it serves under."""
+
+    member: str = ""
+    worker_id: str = ""
+
+
 def worker_specs(
     members: tuple[str, ...],
     replicas: int,
     threads: int,
     zenoh_flags: list[str],
     precision: Precision = "float32",
-) -> list[ProcessSpec]:
-    """`replicas` predictor workers per member, restarted when they die."""
+    id_prefix: str = "pool",
+) -> list[WorkerSpec]:
+    """`replicas` predictor workers per member, restarted when they die; worker ids
+    `<id_prefix>-<member>-<replica>` (the supervisor probes their health under these)."""
     flags = ("--threads", str(threads), "--precision", precision, *zenoh_flags)
-    return [
-        ProcessSpec(
-            f"predictor-{member}" + (f"-{replica}" if replicas > 1 else ""),
-            "services.predictor",
-            ("--member", member, *flags),
-            restart=True,
-        )
-        for member in members
-        for replica in range(replicas)
-    ]
+    specs = []
+    for member in members:
+        for replica in range(replicas):
+            worker_id = f"{id_prefix}-{member}-{replica}"
+            specs.append(
+                WorkerSpec(
+                    f"predictor-{member}" + (f"-{replica}" if replicas > 1 else ""),
+                    "services.predictor",
+                    ("--member", member, "--worker-id", worker_id, *flags),
+                    restart=True,
+                    member=member,
+                    worker_id=worker_id,
+                )
+            )
+    return specs
 
 
 def hub_session_config(

@@ -2,7 +2,7 @@
 
     python -m services.predictor --member g [--worker-id ID] [--weights-dir DIR]
         [--device cpu|cuda] [--threads 1] [--precision float32|bfloat16]
-        [--mode ...] [--connect ...] [--listen ...]
+        [--hang-after N] [--mode ...] [--connect ...] [--listen ...]
 
 The worker loads its member's weights, declares a queryable on
 `mapex/@v1/predict/<member>/<worker_id>` and then a liveliness token on
@@ -10,7 +10,13 @@ The worker loads its member's weights, declares a queryable on
 there). Planners send each query to one chosen worker, so replicas of a member share the
 load. Queries are answered one at a time on a serving thread (never on Zenoh's own threads,
 which a slow prediction would stall): a PredictReply, or an ErrorReply on the error channel
-for a malformed request; the worker never dies of a bad message. SIGINT/SIGTERM undeclare
+for a malformed request; the worker never dies of a bad message. A request that waited in the
+queue longer than its budget (the planner has given up on it) is dropped, not computed. A
+health probe on `mapex/@v1/health/<member>/<worker_id>` is answered at once on Zenoh's thread
+with how long the current prediction has been running, so planners and the supervisor can
+tell a worker stuck in one (docs/design.md#reliability). `--hang-after N` is fault
+injection for tests and benchmarks: after N predictions the worker stops answering but keeps
+its session, token and health probe, as a deadlocked one would. SIGINT/SIGTERM undeclare
 everything, close the session and exit 0. Bad flags or missing weights: one line, exit 2.
 """
 
@@ -34,8 +40,15 @@ from mapex.prediction.config import Precision, add_precision_argument
 from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
 from services.codec import DEFAULT_SERVICES, Payload, ProtocolError
 from services.config import ServicesConfig
-from services.keys import ID_MAX_CHARS, MEMBERS, alive_predictor_key, is_valid_id, predict_key
-from services.messages import ErrorReply, PredictReply, PredictRequest
+from services.keys import (
+    ID_MAX_CHARS,
+    MEMBERS,
+    alive_predictor_key,
+    health_key,
+    is_valid_id,
+    predict_key,
+)
+from services.messages import ErrorReply, HealthReply, PredictReply, PredictRequest
 from services.serving import (
     QueryServers,
     configure_logging,
@@ -56,16 +69,29 @@ log = logging.getLogger("services.predictor")
 
 
 class MemberServer:
-    """Turns one request payload into the reply of one member; knows nothing of Zenoh."""
+    """Turns one request payload into the reply of one member; knows nothing of Zenoh.
 
-    def __init__(self, predictor: Predictor, member: str, worker_id: str) -> None:
+    Tracks what a health probe reports: the start of the prediction being computed, the
+    predictions answered and the requests dropped past their budget. `hang_after` (fault
+    injection) makes it block for ever once it has answered that many.
+    """
+
+    def __init__(
+        self, predictor: Predictor, member: str, worker_id: str, hang_after: int | None = None
+    ) -> None:
         self.predictor = predictor
         self.member = member
         self.worker_id = worker_id
+        self.hang_after = hang_after
         self.answered = 0  # predictions served
+        self.dropped = 0  # requests that waited past their budget
+        self._busy_since: float | None = None  # monotonic start of the current prediction
 
-    def answer(self, payload: Payload | None) -> PredictReply | ErrorReply:
-        """The PredictReply for a valid PredictRequest payload, else an ErrorReply saying why."""
+    def answer(self, payload: Payload | None, waited_s: float = 0.0) -> PredictReply | ErrorReply:
+        """The PredictReply for a valid PredictRequest payload, else an ErrorReply saying why.
+
+        `waited_s`: how long the request waited queued; past its budget it is dropped.
+        """
         try:
             if payload is None:
                 raise ProtocolError("the query carries no payload")
@@ -73,6 +99,31 @@ class MemberServer:
         except ProtocolError as error:
             log.warning("refused a malformed request: %s", error)
             return ErrorReply(f"malformed predict request: {error}")
+        if request.budget_s is not None and waited_s > request.budget_s:
+            self.dropped += 1
+            log.warning(
+                "dropped request %d: it waited %.1f s, past its %.1f s budget",
+                request.request_id, waited_s, request.budget_s,
+            )  # fmt: skip
+            return ErrorReply(
+                f"dropped: waited {waited_s:.1f} s, past the {request.budget_s} s budget"
+            )
+        self._busy_since = time.monotonic()
+        try:
+            return self._predict(request)
+        finally:
+            self._busy_since = None
+
+    def health(self, queued: int) -> HealthReply:
+        """What a health probe is told now (`queued`: requests waiting behind this one)."""
+        since = self._busy_since
+        busy_s = 0.0 if since is None else time.monotonic() - since
+        return HealthReply(self.member, self.worker_id, busy_s, queued, self.answered, self.dropped)
+
+    def _predict(self, request: PredictRequest) -> PredictReply | ErrorReply:
+        if self.hang_after is not None and self.answered >= self.hang_after:
+            log.warning("fault injection: hanging on request %d", request.request_id)
+            threading.Event().wait()  # for ever, as a deadlocked worker would
         started = time.perf_counter()
         try:
             probabilities = self.predictor.predict_members(request.observed, (0,))[0]
@@ -96,12 +147,18 @@ def serve(
     """Serve `server`'s member on `session` until `stop` is set; return the queries answered."""
     key = predict_key(server.member, server.worker_id)
     servers = QueryServers(session, {key: server.answer})
+
+    def on_probe(query: zenoh.Query) -> None:  # on Zenoh's thread: never waits for a prediction
+        query.reply(query.key_expr, server.health(servers.queued(key)).encode())
+
+    probe = session.declare_queryable(health_key(server.member, server.worker_id), on_probe)
     token = session.liveliness().declare_token(alive_predictor_key(server.member, server.worker_id))
     log.info("serving member %s on %s", server.member, key)
     try:
         wait_for(stop)
     finally:
         token.undeclare()
+        probe.undeclare()
         servers.close(services.predictor_drain_s)
     return server.answered
 
@@ -116,6 +173,7 @@ def main(
     stop: threading.Event | None = None,
     services: ServicesConfig = DEFAULT_SERVICES,
     precision: Precision = "float32",
+    hang_after: int | None = None,
 ) -> int:
     """Load `member`'s weights, then serve it until `stop` is set; return the queries answered.
 
@@ -131,7 +189,7 @@ def main(
     )
     session = open_session(config)
     try:
-        server = MemberServer(predictor, member, worker_id)
+        server = MemberServer(predictor, member, worker_id, hang_after)
         return serve(session, server, stop or threading.Event(), services)
     finally:
         session.close()
@@ -160,6 +218,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="torch CPU threads (default: one, as several workers share the machine)",
     )
     add_precision_argument(parser)
+    parser.add_argument(
+        "--hang-after",
+        type=int,
+        default=None,
+        metavar="N",
+        help="fault injection (tests, benchmarks): stop answering after N predictions, "
+        "keeping the session, token and health probe",
+    )
     add_zenoh_arguments(parser)
     return parser
 
@@ -183,6 +249,7 @@ def run_cli(argv: list[str] | None = None) -> int:
             args.threads,
             stop,
             precision=args.precision,
+            hang_after=args.hang_after,
         )
     except (WeightsError, ZenohConfigError) as error:
         log.error("%s", error)
@@ -199,6 +266,8 @@ def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace, work
         parser.error(f"--device {args.device!r} must be cpu, cuda or cuda:N")
     if args.threads < 1:
         parser.error(f"--threads must be at least 1, got {args.threads}")
+    if args.hang_after is not None and args.hang_after < 0:
+        parser.error(f"--hang-after must be at least 0, got {args.hang_after}")
     if args.device.startswith("cuda") and not _cuda_available():
         parser.error(f"--device {args.device}: no CUDA device is available")
 

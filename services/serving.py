@@ -2,7 +2,8 @@
 
 A service declares one queryable per key, answers its queries in arrival order on a
 thread of its own (inside `with query:` so the querier stops waiting as soon as the
-reply is sent), waits for SIGINT/SIGTERM and then undeclares and drains.
+reply is sent), waits for SIGINT/SIGTERM and then undeclares and drains. Each answer is told
+how long its query waited in the queue, so a worker can drop one its querier gave up on.
 """
 
 from __future__ import annotations
@@ -10,9 +11,11 @@ from __future__ import annotations
 import ctypes
 import logging
 import os
+import queue
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable
 
 import zenoh
@@ -20,41 +23,64 @@ import zenoh
 from services.codec import Payload
 from services.messages import ErrorReply, Message
 
-Answer = Callable[[Payload | None], Message]
+Answer = Callable[[Payload | None, float], Message]
+"""Turns a query's payload (None: none) into the reply, told how long (s) it waited queued."""
 SUPERVISOR_PID_ENV = "MAPEX_SUPERVISOR_PID"  # set by services.supervisor for its children
+RUN_TOKEN_ENV = "MAPEX_RUN_TOKEN"  # a run's secret: services.up sets it for its world and planners
 STOP_POLL_S = 0.5  # how often the main thread looks up from waiting (signals run meanwhile)
 
 log = logging.getLogger("services.serving")
 
 
 class QueryServers:
-    """One queryable and one answering thread per key, until `close`."""
+    """One queryable and one answering thread per key, until `close`.
+
+    Zenoh's threads only stamp each query with its arrival time and queue it; the key's
+    thread answers the queue in arrival order.
+    """
 
     def __init__(self, session: zenoh.Session, answers: dict[str, Answer]) -> None:
-        self.queryables = [session.declare_queryable(key) for key in answers]
+        self._queues: dict[str, queue.SimpleQueue] = {key: queue.SimpleQueue() for key in answers}
+        self.queryables = [
+            session.declare_queryable(key, self._enqueue(self._queues[key])) for key in answers
+        ]
         self.threads = [
             threading.Thread(
-                target=answer_queries, args=(q, key, answer), name=f"serve {key}", daemon=True
+                target=answer_queries,
+                args=(self._queues[key], key, answer),
+                name=f"serve {key}",
+                daemon=True,
             )
-            for q, (key, answer) in zip(self.queryables, answers.items(), strict=True)
+            for key, answer in answers.items()
         ]
         for thread in self.threads:
             thread.start()
 
+    def queued(self, key: str) -> int:
+        """Queries of `key` waiting for its thread (not counting the one being answered)."""
+        return self._queues[key].qsize()
+
     def close(self, drain_s: float) -> None:
-        """Undeclare every queryable (ending its thread's loop) and wait up to `drain_s` each."""
+        """Undeclare every queryable, end each thread's loop and wait up to `drain_s` each."""
         for queryable in self.queryables:
             queryable.undeclare()
+        for waiting in self._queues.values():
+            waiting.put(None)
         for thread in self.threads:
             thread.join(drain_s)
 
+    @staticmethod
+    def _enqueue(waiting: queue.SimpleQueue) -> Callable[[zenoh.Query], None]:
+        return lambda query: waiting.put((time.monotonic(), query))
 
-def answer_queries(queryable: zenoh.Queryable, key: str, answer: Answer) -> None:
-    """Answer queries in arrival order until the queryable is undeclared."""
-    for query in queryable:
+
+def answer_queries(waiting: queue.SimpleQueue, key: str, answer: Answer) -> None:
+    """Answer queued (arrival time, query) pairs in order until a None arrives."""
+    while (item := waiting.get()) is not None:
+        arrived, query = item
         with query:  # leaving the block finalises the query: the querier stops waiting
             payload = None if query.payload is None else query.payload.to_bytes()
-            reply = answer(payload)
+            reply = answer(payload, time.monotonic() - arrived)
             try:
                 if isinstance(reply, ErrorReply):
                     query.reply_err(reply.encode())
@@ -85,6 +111,11 @@ def supervisor_gone() -> bool:
     """Whether a supervisor started this process and has died since (it was orphaned)."""
     supervisor = os.environ.get(SUPERVISOR_PID_ENV)
     return supervisor is not None and str(os.getppid()) != supervisor
+
+
+def run_token_from_env() -> str | None:
+    """The run token of this process's run (`MAPEX_RUN_TOKEN`), or None when unset or empty."""
+    return os.environ.get(RUN_TOKEN_ENV) or None
 
 
 def configure_logging(process_name: str) -> None:

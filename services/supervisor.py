@@ -15,6 +15,7 @@ connects to the hub that already listens there.
 from __future__ import annotations
 
 import atexit
+import collections
 import contextlib
 import errno
 import os
@@ -28,11 +29,13 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import IO
 
+from mapex.exit_codes import EXIT_USAGE
 from services.codec import DEFAULT_SERVICES
 from services.config import ServicesConfig
 from services.serving import SUPERVISOR_PID_ENV
 
 LogSink = Callable[[str], None]
+_RECENT_LINES = 20  # lines kept per child for `last_words`
 
 
 @dataclass(frozen=True)
@@ -40,7 +43,8 @@ class ProcessSpec:
     """A `python -m module *args` child.
 
     `restart=True` marks a long-lived server (the world, a predictor worker): the supervisor
-    restarts it when it dies unexpectedly (non-zero exit or a signal). Planners finish and
+    restarts it when it dies unexpectedly (a signal, or a non-zero exit other than 2: a usage
+    error such as missing weights would only repeat). Planners finish and
     are not restarted. `cwd` (default: the supervisor's working directory) and `env`
     (variables added to the supervisor's environment) are there for children that need them.
     """
@@ -87,7 +91,7 @@ class Supervisor:
         )
         self.services = services
         self.restarts: dict[str, int] = {}
-        self.last_lines: dict[str, str] = {}  # each child's last non-empty output line
+        self._recent: dict[str, collections.deque[str]] = {}  # each child's last lines
         self._children: dict[str, _Child] = {}
         self._forwarders: list[threading.Thread] = []
         self._sink_lock = threading.Lock()
@@ -137,6 +141,13 @@ class Supervisor:
             raise KeyError(f"no process named {name!r}")
         return child.process
 
+    def last_words(self, name: str) -> str:
+        """What `name` said last: its last recent line that reports an error, else its last
+        line ("no output" when it printed nothing)."""
+        recent = list(self._recent.get(name, ()))
+        errors = [line for line in recent if "error" in line.lower()]
+        return (errors or recent or ["no output"])[-1]
+
     def returncode(self, name: str) -> int | None:
         """The exit code of `name`'s current process (negative: killed by that signal), or None."""
         return self.process(name).poll()
@@ -151,6 +162,12 @@ class Supervisor:
             return self.process(name).wait(timeout_s)
         except subprocess.TimeoutExpired:
             return None
+
+    def kill(self, name: str, why: str) -> None:
+        """SIGKILL `name`'s current process and its group, logging `why`; a server is then
+        restarted by the next `poll` like any crashed one."""
+        self._log(f"killing {name}: {why}")
+        _signal_group(self.process(name), signal.SIGKILL)
 
     def stop(self, grace_s: float | None = None) -> None:
         """SIGTERM every child, wait up to `grace_s` (default `services.stop_grace_s`), then
@@ -228,6 +245,9 @@ class Supervisor:
         if not child.spec.restart or code == 0:
             self._log(exit_text)
             return False
+        if code == EXIT_USAGE:
+            self._log(f"{exit_text}; not restarted: a usage error would repeat")
+            return False
         used = self.restarts.get(name, 0)
         if used >= self.max_restarts:
             self._log(f"{exit_text}; not restarted: gave up after {used} restarts")
@@ -247,7 +267,8 @@ class Supervisor:
             for raw in stream:
                 text = raw.decode(errors="replace").rstrip("\r\n")
                 if text.strip():
-                    self.last_lines[name] = text.strip()
+                    self._recent.setdefault(name, collections.deque(maxlen=_RECENT_LINES))
+                    self._recent[name].append(text.strip())
                 self._emit(f"[{name}] {text}")
 
     def _log(self, message: str) -> None:

@@ -8,7 +8,9 @@ folder as `python -m mapex run` (results/<world>-<method>-start<i>-seed<s>).
 
 Every child's log lines are forwarded with its name; a predictor worker that dies is
 restarted (the planner goes on without that member meanwhile and the record notes the
-degraded re-plans); Ctrl-C stops every child within a few seconds. `--start` is a corner
+degraded re-plans), and so is one found stuck in a prediction (`services.health`); a world
+that exits, or any child that fails to start, ends the run at once with that child's own
+line; Ctrl-C stops every child within a few seconds. `--start` is a corner
 0-3 or a cell ROW,COL. `--runs N` runs N episodes at once (corner starts start, start+1, ...
 mod 4, or the one cell; seeds seed, seed+1, ...) sharing the one predictor pool;
 `--robots N` puts N robots in each world. With `--connect` (e.g. a router on another
@@ -21,6 +23,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import secrets
 import sys
 import threading
 import time
@@ -42,10 +45,11 @@ from mapex.worlds import DEFAULT_SPEC, StartSpec, WorldError, load_world
 from mapex.worlds.starts import add_start_argument, start_argument, start_cell
 from services.codec import DEFAULT_SERVICES
 from services.config import ServicesConfig
+from services.health import PoolWatch
 from services.keys import ID_MAX_CHARS, is_valid_id, robot_id
 from services.messages import PoseMessage
 from services.pool import RunProgress, add_pool_arguments, hub_session_config, worker_specs
-from services.serving import configure_logging, stop_on_signals
+from services.serving import RUN_TOKEN_ENV, configure_logging, stop_on_signals
 from services.supervisor import ProcessSpec, Supervisor, describe_exit
 from services.zenoh_config import (
     HUB_HELP,
@@ -61,11 +65,14 @@ log = logging.getLogger("services.up")
 
 @dataclass(frozen=True)
 class Run:
-    """One episode: a world process and one planner per robot."""
+    """One episode: a world process and one planner per robot. `token`: the run's secret,
+    given to its world and planners only (in their environment, not on a command line);
+    the world refuses steps without it."""
 
     run_id: str
     starts: tuple[StartSpec, ...]
     seed: int
+    token: str = ""
 
 
 def plan_runs(args: argparse.Namespace) -> list[Run]:
@@ -73,7 +80,12 @@ def plan_runs(args: argparse.Namespace) -> list[Run]:
     (mod 4), or with a cell start its one robot at that cell."""
     prefix = args.run_prefix or f"up{os.getpid()}"
     return [
-        Run(f"{prefix}-{k}", _run_starts(args.start, k, args.robots), args.seed + k)
+        Run(
+            f"{prefix}-{k}",
+            _run_starts(args.start, k, args.robots),
+            args.seed + k,
+            secrets.token_hex(16),
+        )  # fmt: skip
         for k in range(args.runs)
     ]
 
@@ -86,10 +98,14 @@ def _run_starts(start: StartSpec, run: int, robots: int) -> tuple[StartSpec, ...
 
 def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str]) -> dict:
     """Process specs by role: 'workers', 'worlds', 'planners'."""
-    workers = worker_specs(args.members, args.replicas, args.threads, zenoh_flags, args.precision)
+    workers = worker_specs(
+        args.members, args.replicas, args.threads, zenoh_flags, args.precision,
+        id_prefix=f"up{os.getpid()}",
+    )  # fmt: skip
     worlds, planners = [], []
     for run in runs:
         starts = [start_argument(start) for start in run.starts]
+        secret = {RUN_TOKEN_ENV: run.token}
         worlds.append(
             ProcessSpec(
                 f"world-{run.run_id}",
@@ -105,6 +121,7 @@ def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str
                     *starts,
                     *zenoh_flags,
                 ),
+                env=secret,
             )  # fmt: skip
         )
         for robot in range(len(run.starts)):
@@ -122,6 +139,7 @@ def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str
                     f"planner-{run.run_id}-{robot_id(robot)}",
                     "services.planner",
                     (*planner_args, *zenoh_flags),
+                    env=secret,
                 )
             )
     return {"workers": workers, "worlds": worlds, "planners": planners}
@@ -129,28 +147,32 @@ def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str
 
 def supervise(
     supervisor: Supervisor,
-    planners: list[ProcessSpec],
-    worlds: list[ProcessSpec],
+    specs: dict[str, list[ProcessSpec]],
     progress: RunProgress,
     runs: list[Run],
     total_steps: int,
     stop: threading.Event,
     show_progress: bool,
+    watch: PoolWatch | None = None,
 ) -> int:
     """Poll until every planner exits (or `stop`); return the exit code of the whole run.
 
-    A world that exits while planners still run ends the whole run at once, with the
-    world's own last line: its robots' poses, sequence numbers and scans live only in that
-    process, so a restarted world could not resume the run soundly.
+    `specs` by role as `child_specs` gives them. A world that exits while planners still run
+    ends the whole run at once, with the world's own last line: its robots' poses, sequence
+    numbers and scans live only in that process, so a restarted world could not resume the
+    run soundly. So does any child that fails to start (exit 2: bad flags, missing weights, no
+    hub), with its own error line. `watch` kills stuck workers for `poll` to restart.
     """
-    pending = {spec.name for spec in planners}
+    pending = {spec.name for spec in specs["planners"]}
     failed: list[str] = []
     with tqdm(total=total_steps, unit="step", disable=not show_progress, file=sys.stderr) as bar:
         while pending and not stop.is_set():
             supervisor.poll()
-            gone = _gone_world(supervisor, worlds)
-            if gone is not None:
-                log.error("%s", gone)
+            if watch is not None:
+                watch.check()
+            fatal = _failed_start(supervisor, specs) or _gone_world(supervisor, specs["worlds"])
+            if fatal is not None:
+                log.error("%s", fatal)
                 return EXIT_FAILED
             for name in sorted(pending):
                 code = supervisor.returncode(name)
@@ -183,18 +205,27 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
     session = open_session(own_config)
     progress = RunProgress(session, "pose", PoseMessage)
     supervisor = Supervisor(services=services)
+    watch = PoolWatch(session, supervisor, specs["workers"], services)
     try:
         for spec in specs["workers"] + specs["worlds"] + specs["planners"]:
             supervisor.start(spec)
         total = args.steps * sum(len(run.starts) for run in runs)
         return supervise(
-            supervisor, specs["planners"], specs["worlds"], progress, runs, total, stop,
-            not args.no_progress,
-        )  # fmt: skip
+            supervisor, specs, progress, runs, total, stop, not args.no_progress, watch
+        )
     finally:
         supervisor.stop()
         progress.close()
         session.close()
+
+
+def _failed_start(supervisor: Supervisor, specs: dict[str, list[ProcessSpec]]) -> str | None:
+    """A line naming the first child that exited with a usage error, with its last line."""
+    for spec in (spec for role in specs.values() for spec in role):
+        if supervisor.returncode(spec.name) == EXIT_USAGE:
+            said = supervisor.last_words(spec.name)
+            return f"{spec.name} failed to start ({said}): stopping the run"
+    return None
 
 
 def _gone_world(supervisor: Supervisor, worlds: list[ProcessSpec]) -> str | None:
@@ -202,7 +233,7 @@ def _gone_world(supervisor: Supervisor, worlds: list[ProcessSpec]) -> str | None
     for spec in worlds:
         code = supervisor.returncode(spec.name)
         if code is not None:
-            said = supervisor.last_lines.get(spec.name, "no output")
+            said = supervisor.last_words(spec.name)
             return (
                 f"{spec.name} exited with {describe_exit(code)} before its run ended "
                 f"({said}): stopping the run"

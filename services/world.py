@@ -14,6 +14,9 @@ liveliness token `mapex/@v1/alive/world/<run>` (a live token means every queryab
 
 Steps carry a per-robot sequence number (StepRequest.seq): a repeat of the last one served gets
 the cached reply without moving the robot, so a planner may retry a query whose reply was lost.
+With a run token in the environment (`MAPEX_RUN_TOKEN`, which services.up sets for the world
+and the planners of each run it starts), a step that does not carry that token is refused: a
+stray client that can reach the hub cannot move a robot (docs/design.md#trust).
 Queries are answered on serving threads, never on Zenoh's own. SIGINT/SIGTERM undeclare
 everything, close the session and exit 0. Bad world, starts or flags: one line, exit 2.
 """
@@ -21,6 +24,7 @@ everything, close the session and exit 0. Bad world, starts or flags: one line, 
 from __future__ import annotations
 
 import argparse
+import hmac
 import logging
 import queue
 import sys
@@ -53,7 +57,15 @@ from services.messages import (
     StepRequest,
     WorldInfo,
 )
-from services.serving import Answer, QueryServers, configure_logging, stop_on_signals, wait_for
+from services.serving import (
+    RUN_TOKEN_ENV,
+    Answer,
+    QueryServers,
+    configure_logging,
+    run_token_from_env,
+    stop_on_signals,
+    wait_for,
+)
 from services.zenoh_config import (
     ZenohConfigError,
     add_zenoh_arguments,
@@ -78,7 +90,8 @@ class WorldServer:
 
     Robot i starts at `starts[i]` (a corner 0-3 or a cell). `answer_step` never raises on
     bad input; it serialises steps, so serving threads of several robots may call it at once.
-    `on_step` (settable) hears of every fresh step, e.g. to publish it.
+    `on_step` (settable) hears of every fresh step, e.g. to publish it. With a `run_token`,
+    steps that do not carry it are refused before anything else is looked at.
     """
 
     def __init__(
@@ -87,6 +100,7 @@ class WorldServer:
         starts: Sequence[StartSpec],
         config: ExplorationConfig = DEFAULT_EXPLORATION,
         on_step: StepListener | None = None,
+        run_token: str | None = None,
     ) -> None:
         if not starts:
             raise StartError("a world needs at least one robot")
@@ -98,6 +112,7 @@ class WorldServer:
         self.world = world
         self.simulator = Simulator(world, self.starts, config.sensor, config.motion)
         self.on_step = on_step
+        self.run_token = run_token
         self.served = 0  # fresh steps served, all robots together
         self._last_seq: list[int | None] = [None] * len(self.starts)
         self._last_reply: list[ScanReply | None] = [None] * len(self.starts)
@@ -127,6 +142,8 @@ class WorldServer:
         except ProtocolError as error:
             log.warning("refused a malformed step request: %s", error)
             return ErrorReply(f"malformed step request: {error}")
+        if not self._authorised(request):
+            return self._refuse(robot, f"step seq {request.seq} without this run's token")
         with self._lock:
             return self._step(robot, request)
 
@@ -149,6 +166,11 @@ class WorldServer:
             self.on_step(robot, request.seq, reply)
         return reply
 
+    def _authorised(self, request: StepRequest) -> bool:
+        if self.run_token is None:
+            return True
+        return hmac.compare_digest((request.run_token or "").encode(), self.run_token.encode())
+
     def _refuse(self, robot: int, why: str) -> ErrorReply:
         log.warning("robot %s: %s", robot_id(robot), why)
         return ErrorReply(f"robot {robot_id(robot)}: {why}")
@@ -167,8 +189,8 @@ def serve(
     server.on_step = step_publisher
     info, truth = server.world_info(), server.ground_truth()
     answers: dict[str, Answer] = {
-        run_key(run, "world_info"): lambda _: info,
-        run_key(run, "ground_truth"): lambda _: truth,
+        run_key(run, "world_info"): lambda *_: info,
+        run_key(run, "ground_truth"): lambda *_: truth,
     }
     for robot in range(server.n_robots):
         answers[robot_key(run, robot_id(robot), "step")] = _step_answerer(server, robot)
@@ -230,7 +252,7 @@ class _StepPublisher:
 
 
 def _step_answerer(server: WorldServer, robot: int) -> Answer:
-    return lambda payload: server.answer_step(robot, payload)
+    return lambda payload, _waited_s: server.answer_step(robot, payload)
 
 
 def main(
@@ -241,13 +263,15 @@ def main(
     stop: threading.Event | None = None,
     exploration: ExplorationConfig = DEFAULT_EXPLORATION,
     services: ServicesConfig = DEFAULT_SERVICES,
+    run_token: str | None = None,
 ) -> int:
     """Serve `world` for `run` with robots at `starts` (corners or cells) until `stop` is set.
 
     Returns the steps served. Raises StartError or WorldError (bad starts, no start pose) before
-    any network set-up, and ZenohConfigError when the session is refused.
+    any network set-up, and ZenohConfigError when the session is refused. With `run_token`
+    only steps carrying it move a robot.
     """
-    server = WorldServer(world, starts, exploration)
+    server = WorldServer(world, starts, exploration, run_token=run_token)
     session = open_session(config)
     try:
         return serve(session, server, run, stop or threading.Event(), services)
@@ -291,7 +315,10 @@ def run_cli(argv: list[str] | None = None) -> int:
     try:
         config = zenoh_config_from_args(args)
         world = load_world(args.world)
-        served = main(config, world, args.run, starts, stop)
+        token = run_token_from_env()
+        if token is None:
+            log.warning("no %s set: any client that reaches the hub may step", RUN_TOKEN_ENV)
+        served = main(config, world, args.run, starts, stop, run_token=token)
     except (WorldError, StartError, ZenohConfigError) as error:
         log.error("%s", error)
         return EXIT_USAGE

@@ -46,11 +46,16 @@ class ZenohWorld:
     """Robots of one run, moved and scanned by the world process reachable through `session`."""
 
     def __init__(
-        self, session: zenoh.Session, run: str, services: ServicesConfig = DEFAULT_SERVICES
+        self,
+        session: zenoh.Session,
+        run: str,
+        services: ServicesConfig = DEFAULT_SERVICES,
+        run_token: str | None = None,
     ) -> None:
         self.session = session
         self.run = run
         self.services = services
+        self.run_token = run_token  # carried by every step (the world may require it)
         self._next_seq: dict[int, int] = {}
 
     def fetch(self, timeout_s: float | None = None) -> tuple[WorldInfo, World]:
@@ -77,7 +82,7 @@ class ZenohWorld:
     def _step(self, robot: int, cells: np.ndarray) -> Scan:
         seq = self._next_seq.get(robot, 0)
         key = robot_key(self.run, robot_id(robot), "step")
-        payload = StepRequest(seq, cells).encode(self.services)
+        payload = StepRequest(seq, cells, self.run_token).encode(self.services)
         began = time.monotonic()
         deadline = began + self.services.step_retries * self.services.step_timeout_s
         pause, longest_pause = self.services.step_retry_pause_s

@@ -23,6 +23,7 @@ def test_every_key_of_the_protocol_is_documented_and_no_other():
     expected |= {f"{KEY_PREFIX}/<run>/{topic}" for topic in RUN_TOPICS}
     expected |= {
         f"{KEY_PREFIX}/predict/<member>/<worker_id>",
+        f"{KEY_PREFIX}/health/<member>/<worker_id>",
         f"{KEY_PREFIX}/alive/predict/<member>/<worker_id>",
         f"{KEY_PREFIX}/alive/world/<run>",
         f"{KEY_PREFIX}/alive/planner/<run>",

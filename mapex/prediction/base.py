@@ -49,6 +49,15 @@ class EnsemblePrediction:
         """The member index of each row."""
         return self.member_ids if self.member_ids is not None else tuple(range(len(self.members)))
 
+    def served_by(self) -> dict[str, str]:
+        """{member name: id of the worker that answered it} (empty when computed locally),
+        so a run's record says who produced every prediction it used."""
+        if self.workers is None:
+            return {}
+        return {
+            MEMBER_NAMES[k]: worker for k, worker in zip(self.answered, self.workers, strict=True)
+        }
+
     @property
     def has_variance(self) -> bool:
         """Whether enough of G_1..G_n answered for a variance (at least two)."""

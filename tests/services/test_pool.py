@@ -31,8 +31,10 @@ def test_worker_specs_name_replicas_and_restart_them():
 
 
 def test_worker_specs_pass_threads_and_precision():
-    (spec,) = worker_specs(("g1",), 1, 3, [], "bfloat16")
-    assert spec.args == ("--member", "g1", "--threads", "3", "--precision", "bfloat16")
+    (spec,) = worker_specs(("g1",), 1, 3, [], "bfloat16", id_prefix="up7")
+    assert spec.args == ("--member", "g1", "--worker-id", "up7-g1-0", "--threads", "3",
+                         "--precision", "bfloat16")  # fmt: skip
+    assert (spec.member, spec.worker_id) == ("g1", "up7-g1-0")
     (default,) = worker_specs(("g",), 1, 1, [])
     assert default.args[-2:] == ("--precision", "float32")
 

@@ -11,6 +11,7 @@ import contextlib
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -25,10 +26,10 @@ from service_processes import (
     free_loopback_port,
     until,
 )
+from tiny_training import SMALL
 
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
 from mapex.prediction.base import MEMBER_NAMES, Predictor
-from mapex.prediction.config import NetworkConfig
 from mapex.prediction.learned import LearnedEnsemble
 from mapex.prediction.network import LamaGenerator
 from mapex.prediction.weights import save_weights
@@ -36,11 +37,10 @@ from services.codec import encode_array, pack_message
 from services.config import ServicesConfig
 from services.ensemble_client import ZenohEnsemble
 from services.keys import alive_predictor_key, predict_key
-from services.messages import ErrorReply, PredictReply, PredictRequest, decode_message
-from services.predictor import MemberServer
+from services.messages import ErrorReply, HealthReply, PredictReply, PredictRequest, decode_message
+from services.predictor import MemberServer, serve
 from services.zenoh_config import open_session, zenoh_config
 
-SMALL = NetworkConfig(channels=16, n_blocks=1, downscale=4, refine_channels=4)
 FAST = ServicesConfig(predict_timeout_s=3.0, liveliness_query_timeout_s=1.0)
 START_DEADLINE_S = 60.0  # six workers import torch at once on a shared 2-core machine
 QUANTUM = 1 / 255  # uint8 replies, plus float noise between processes
@@ -67,10 +67,10 @@ class WorkerPool(ServiceProcesses):
         super().__init__(hub_endpoint, log_dir)
         self.weights_dir = weights_dir
 
-    def start(self, member: str, worker_id: str):
+    def start(self, member: str, worker_id: str, *flags: str):
         return self.spawn(
             worker_id, "services.predictor", "--member", member, "--worker-id", worker_id,
-            "--weights-dir", str(self.weights_dir),
+            "--weights-dir", str(self.weights_dir), *flags,
         )  # fmt: skip
 
     def wait_alive(self, ensemble: ZenohEnsemble, member: str, worker_id: str) -> None:
@@ -252,6 +252,41 @@ def test_bad_flags_and_missing_weights_are_one_line_errors(flags, message, tmp_p
     assert sum(message in line for line in result.stderr.splitlines()) == 1
 
 
+def test_a_hung_worker_costs_one_timeout_then_gets_no_query(weights_dir, tmp_path):
+    """DESIGN: a hung worker costs at most one timeout. `a-hung` stops answering after one
+    prediction but keeps its session, token and health probe (a deadlock, a stuck GPU)."""
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    session = open_session(zenoh_config(listen=[endpoint], connect=[]))
+    workers = WorkerPool(endpoint, weights_dir, tmp_path)
+    client = None
+    try:
+        workers.start("g1", "a-hung", "--hang-after", "1")
+        workers.start("g1", "b-good")
+        client = ZenohEnsemble(session, FAST)
+        for worker_id in ("a-hung", "b-good"):
+            workers.wait_alive(client, "g1", worker_id)
+        crop = partly_observed((40, 40))
+        served = [client.predict(crop, members=(1,)).workers for _ in range(2)]
+        assert served == [("a-hung",), ("b-good",)]  # least recently used: both in turn
+        started = time.monotonic()
+        assert client.predict(crop, members=(1,)).member_ids == ()  # a-hung: one timeout
+        assert client.benched_workers()["g1"] == ("a-hung",)
+        after = [client.predict(crop, members=(1,)).workers for _ in range(6)]
+        elapsed = time.monotonic() - started
+        assert after == [("b-good",)] * 6  # never asked again while it is stuck
+        assert elapsed < 2 * FAST.predict_timeout_s, elapsed  # one timeout, not seven
+        time.sleep(2 * FAST.health_probe_every_s)  # probes go out; it still reports busy
+        assert client.predict(crop, members=(1,)).workers == ("b-good",)
+        assert client.benched_workers()["g1"] == ("a-hung",)
+        assert workers.processes["a-hung"].poll() is None
+        assert "fault injection: hanging" in workers.log_of("a-hung")
+    finally:
+        if client is not None:
+            client.close()
+        workers.kill_all()
+        session.close()
+
+
 # ---------------------------------------------------------------------- in-process pieces
 
 
@@ -269,6 +304,84 @@ def test_member_server_refuses_malformed_payloads(what):
     reply = server.answer(payload)
     assert isinstance(reply, ErrorReply) and "\n" not in reply.message
     assert server.answered == 0
+
+
+class SlowPredictor(ConstantPredictor):
+    """`ConstantPredictor` that takes `delay_s` per prediction (the first `slow` ones)."""
+
+    def __init__(self, delay_s: float, slow: int = 10**6) -> None:
+        self.delay_s, self.slow, self.calls = delay_s, slow, 0
+
+    def predict_members(self, observed, members):
+        self.calls += 1
+        if self.calls <= self.slow:
+            time.sleep(self.delay_s)
+        return super().predict_members(observed, members)
+
+
+@contextlib.contextmanager
+def serving(session, server: MemberServer):
+    """`services.predictor.serve` of `server` on `session`, in a thread, until the block ends."""
+    stop = threading.Event()
+    thread = threading.Thread(target=serve, args=(session, server, stop), daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(STOP_DEADLINE_S)
+
+
+def test_requests_that_waited_past_their_budget_are_dropped_not_computed(rogue_pair):
+    planner, worker = rogue_pair
+    predictor = SlowPredictor(delay_s=1.0)
+    server = MemberServer(predictor, "g", "slow")
+    with serving(worker, server):
+        until(lambda: list(planner.liveliness().get(alive_predictor_key("g", "slow"))), "token")
+        payloads = [
+            PredictRequest(k, partly_observed((12, 10)), budget_s=0.5).encode() for k in (1, 2)
+        ]
+        pending = [planner.get(predict_key("g", "slow"), payload=p, timeout=5.0) for p in payloads]
+        first, second = ([r for r in replies] for replies in pending)
+    assert first[0].ok is not None  # computed
+    dropped = decode_message(second[0].err.payload.to_bytes(), (ErrorReply,))
+    assert dropped.message.startswith("dropped: waited")  # it waited ~1 s behind the first
+    assert (predictor.calls, server.answered, server.dropped) == (1, 1, 1)
+
+
+def test_a_benched_worker_is_back_once_a_health_probe_finds_it_idle(rogue_pair):
+    planner, worker = rogue_pair
+    services = ServicesConfig(
+        predict_timeout_s=0.5, liveliness_query_timeout_s=0.5, health_probe_every_s=0.2
+    )
+    server = MemberServer(SlowPredictor(delay_s=1.5, slow=1), "g", "slow")
+    with serving(worker, server), ZenohEnsemble(planner, services) as client:
+        assert client.wait(timeout_s=5.0, members=("g",))
+        crop = partly_observed((12, 10))
+        assert client.predict(crop, members=(0,)).member_ids == ()  # 1.5 s > 0.5 s timeout
+        assert client.benched_workers()["g"] == ("slow",)
+        assert client.predict(crop, members=(0,)).member_ids == ()  # benched: not asked
+
+        def probed_back() -> bool:
+            client.predict(crop, members=(0,))  # choosing a worker sends the due probes
+            return client.benched_workers()["g"] == ()
+
+        until(probed_back, "a health probe to clear the worker", deadline_s=5.0)
+        assert client.predict(crop, members=(0,)).workers == ("slow",)
+
+
+def test_health_says_how_long_the_current_prediction_runs():
+    server = MemberServer(SlowPredictor(delay_s=0.6), "g3", "w0")
+    assert server.health(queued=0) == HealthReply("g3", "w0", 0.0, 0, 0, 0)
+    thread = threading.Thread(
+        target=server.answer, args=(PredictRequest(1, partly_observed()).encode(),)
+    )
+    thread.start()
+    time.sleep(0.3)
+    busy = server.health(queued=2)
+    thread.join()
+    assert 0.2 < busy.busy_s < 0.6 and busy.queued == 2
+    assert server.health(queued=0).answered == 1
 
 
 def test_member_server_answers_a_request():

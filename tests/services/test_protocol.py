@@ -26,6 +26,7 @@ from services.protocol import (
     FrontiersMessage,
     GoalMessage,
     GroundTruth,
+    HealthKey,
     MapMessage,
     Message,
     MetricsMessage,
@@ -45,6 +46,7 @@ from services.protocol import (
     alive_predictor_pattern,
     alive_world_key,
     decode_message,
+    health_key,
     parse_key,
     predict_key,
     robot_key,
@@ -75,6 +77,7 @@ from services.protocol import (
         ),
         (run_key("x", "world_info"), "mapex/@v1/x/world_info", RunKey("x", "world_info")),
         (predict_key("g2", "w-7"), "mapex/@v1/predict/g2/w-7", PredictKey("g2", "w-7")),
+        (health_key("g1", "w-7"), "mapex/@v1/health/g1/w-7", HealthKey("g1", "w-7")),
         (
             alive_predictor_key("g", "host1_3"),
             "mapex/@v1/alive/predict/g/host1_3",
@@ -128,6 +131,7 @@ def test_bad_ids_are_one_line_value_errors(bad_id, build):
     [
         lambda: robot_key("predict", "r0", "pose"),
         lambda: run_key("alive", "world_info"),
+        lambda: run_key("health", "world_info"),
         lambda: robot_key("run", "r0", "nonsense"),
         lambda: run_key("run", "pose"),
         lambda: predict_key("g4", "w"),

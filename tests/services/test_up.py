@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import msgpack
@@ -45,8 +46,9 @@ from services.keys import (
     robot_key,
     run_key,
 )
-from services.messages import PoseMessage
-from services.supervisor import parse_tcp_endpoint
+from services.messages import ErrorReply, PoseMessage, StepRequest, decode_message
+from services.supervisor import ProcessSpec, Supervisor, parse_tcp_endpoint
+from services.up import supervise
 from services.zenoh_config import open_session, zenoh_config
 
 WORLD = "generated:0"
@@ -122,6 +124,12 @@ def test_distributed_run_equals_in_process_run_and_a_viewer_sees_its_maps(tmp_pa
     assert curves == expected_curves
     assert metrics["auc"] == expected_metrics["auc"] and metrics["replans"] > 1
     assert metrics["degraded_steps"] == [] and metrics["degraded_metric_samples"] == []
+    audit = metrics["member_workers"]  # who answered every member query, for an audit
+    assert len(audit["replans"]) == metrics["replans"] and audit["metric_samples"]
+    workers = {member: f"up{up.process.pid}-{member}-0" for member in ("g", "g1", "g2", "g3")}
+    assert all(served == workers for _, served in audit["replans"])
+    assert all(served == {"g": workers["g"]} for _, served in audit["metric_samples"])
+    assert expected_metrics["member_workers"] == {"replans": [], "metric_samples": []}
     watch_log = (tmp_path / "watch.log").read_text()
     for kind in ("observed_map", "prediction/mean", "prediction/variance"):
         assert kind in watch_log, watch_log
@@ -157,6 +165,8 @@ def test_a_worker_killed_mid_run_is_restarted_and_the_run_completes(tmp_path):
     assert len(trajectory) == 1001 or metrics["finished_at"] is not None
     degraded = metrics["degraded_steps"] + metrics["degraded_metric_samples"]
     assert degraded and min(degraded) >= 100, metrics
+    audit = dict(map(tuple, metrics["member_workers"]["replans"]))
+    assert all("g" not in audit[t] and len(audit[t]) == 3 for t in metrics["degraded_steps"])
     assert "predictor-g exited with -9 (SIGKILL); restarted (1/" in up.log()
     assert len(up.children()["predictor-g"]) == 2
 
@@ -175,6 +185,40 @@ def test_a_world_killed_mid_run_ends_the_run_at_once_naming_it(tmp_path):
     assert not (tmp_path / "runs" / "wkill-0-r0").exists()
     for pids in up.children().values():
         assert not any(pid_alive(pid) for pid in pids)
+
+
+class NoProgress:
+    def of(self, run: str) -> int:
+        return 0
+
+
+def test_a_child_failing_to_start_ends_the_run_at_once_with_its_line(caplog):
+    """A worker that exits 2 (e.g. no weights) is not restarted and ends everything."""
+    helpers = str(REPO_ROOT / "tests" / "helpers")
+
+    def child(name: str, *args: str, restart: bool = False) -> ProcessSpec:
+        return ProcessSpec(name, "supervised_child", args, restart=restart, cwd=helpers)
+
+    specs = {
+        "workers": [child("predictor-g", "--say", "error: no weights file g.pt", "--exit", "2",
+                          restart=True)],
+        "worlds": [child("world-x", "--sleep", restart=False)],
+        "planners": [child("planner-x", "--sleep")],
+    }  # fmt: skip
+    lines: list[str] = []
+    with Supervisor(lines.append) as supervisor:
+        for spec in specs["workers"] + specs["worlds"] + specs["planners"]:
+            supervisor.start(spec)
+        began = time.monotonic()
+        code = supervise(supervisor, specs, NoProgress(), [], 1, threading.Event(), False)
+        ended_s = time.monotonic() - began
+        assert supervisor.is_running("planner-x")  # ended by supervise, not by itself
+    assert code == 1 and ended_s < 10, (code, ended_s)
+    assert (
+        "[supervisor] predictor-g exited with 2; not restarted: a usage error would repeat" in lines
+    )
+    assert supervisor.restarts == {}
+    assert "predictor-g failed to start (error: no weights file g.pt)" in caplog.text
 
 
 def test_ctrl_c_leaves_no_process_behind(tmp_path):
@@ -281,6 +325,15 @@ def attack(session, run: str) -> list[str]:
     return keys
 
 
+def step_without_token(session, run: str, seq: int) -> str:
+    """A well-formed step of robot r0 from a client that lacks the run's token: the reply."""
+    request = StepRequest(seq, np.array([[1, 1]], dtype=np.int32))
+    key = robot_key(run, "r0", "step")
+    (reply,) = session.get(key, payload=request.encode(), timeout=5.0)
+    assert reply.err is not None
+    return decode_message(reply.err.payload.to_bytes(), (ErrorReply,)).message
+
+
 def test_malformed_payloads_harm_no_process_and_no_result(tmp_path):
     steps = 300
     up, endpoint = start_up(tmp_path, "bad", "--method", "nearest", "--steps", str(steps))
@@ -301,6 +354,7 @@ def test_malformed_payloads_harm_no_process_and_no_result(tmp_path):
             120,
         )
         attack(session, "bad-0")
+        stray_steps = [step_without_token(session, "bad-0", seq) for seq in (0, 1, 5, 50)]
         assert up.wait() == 0, up.log()
         assert watch_exit_code(watch, 60) == 0, (tmp_path / "watch.log").read_text()
     finally:
@@ -318,6 +372,7 @@ def test_malformed_payloads_harm_no_process_and_no_result(tmp_path):
     assert curves == expected_curves and metrics["auc"] == expected_metrics["auc"]
     for refusal in ("refused a malformed step request", "refused a malformed request", "exceeds"):
         assert refusal in log
+    assert all("without this run's token" in reply for reply in stray_steps), stray_steps
     assert "dropped a malformed" in (tmp_path / "watch.log").read_text()
 
 

@@ -306,6 +306,15 @@ def test_world_server_refuses_bad_requests_without_raising(world, robot, payload
     assert tuple(server.simulator.poses[0]) == server.starts[0]
 
 
+@pytest.mark.parametrize("token", [None, "", "wrong", "s3cret-but-longer"])
+def test_a_world_with_a_run_token_refuses_steps_without_it(world, token):
+    server = WorldServer(world, [0], SMALL, run_token="s3cret")
+    reply = server.answer_step(0, StepRequest(0, [], token).encode())
+    assert isinstance(reply, ErrorReply) and "without this run's token" in reply.message
+    assert server.served == 0 and server._last_seq == [None]  # nothing moved, seq untouched
+    assert isinstance(server.answer_step(0, StepRequest(0, [], "s3cret").encode()), ScanReply)
+
+
 def test_world_server_knows_its_robots_starts_and_world(world):
     server = WorldServer(world, [3, 1], SMALL)
     corners = start_poses(world, SMALL.world.start_clearance_cells)
