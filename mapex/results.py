@@ -10,6 +10,7 @@ A folder is written under a temporary name and renamed into place, so a reader
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import json
@@ -17,6 +18,7 @@ import math
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -164,6 +166,20 @@ def _write_run_files(result: EpisodeResult, world: World, staging: Path) -> None
         world.occupancy,
         result.trajectory,
     )
+
+
+@contextlib.contextmanager
+def staged_file(path: Path) -> Iterator[Path]:
+    """A hidden temporary name beside `path` (same suffix, so writers that go by it still
+    work), renamed onto `path` when the block ends well and removed when it raises: a
+    reader sees the old file or the whole new one, never half of one."""
+    partial = path.with_name(f".{path.stem}.partial{path.suffix}")
+    try:
+        yield partial
+        os.replace(partial, path)
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
 
 
 def move_into_place(folder: Path, out_dir: Path) -> Path:

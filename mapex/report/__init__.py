@@ -74,6 +74,7 @@ from mapex.report.tables import (
     report_json,
     run_counts,
 )
+from mapex.results import staged_file
 
 __all__ = [
     "CURVES_FIGURE",
@@ -160,7 +161,8 @@ def write_report(
         warn(note)
     out_dir.mkdir(parents=True, exist_ok=True)
     markdown = out_dir / MARKDOWN_FILE
-    markdown.write_text(render_markdown(table, improvements, counts, REFERENCE_METHOD, notes))
+    with staged_file(markdown) as partial:
+        partial.write_text(render_markdown(table, improvements, counts, REFERENCE_METHOD, notes))
     data = report_json(table, improvements, counts, REFERENCE_METHOD, notes)
     figures = _write_curves(runs, table, out_dir, config)
     snapshots = _write_snapshots(runs, out_dir, config, snapshot_pick, warn)
@@ -168,7 +170,8 @@ def write_report(
         figures.append(out_dir / SNAPSHOTS_FIGURE)
         data.update(snapshots)
     path_json = out_dir / JSON_FILE
-    path_json.write_text(json.dumps(data, indent=2) + "\n")
+    with staged_file(path_json) as partial:
+        partial.write_text(json.dumps(data, indent=2) + "\n")
     summary = auc_markdown(table.rows)
     if improvements:
         summary += "\n\n" + improvements_markdown(improvements, REFERENCE_METHOD)
@@ -181,11 +184,13 @@ def _write_curves(
     """curves.png over all worlds, then curves-<world>.png per world; returns their paths."""
     order = config.method_order
     figures = [out_dir / CURVES_FIGURE]
-    plot_curves(figures[0], runs, f"all worlds ({len(runs)} runs)", order, config)
+    with staged_file(figures[0]) as partial:
+        plot_curves(partial, runs, f"all worlds ({len(runs)} runs)", order, config)
     for world in table.by_world:
         mine = [r for r in runs if r.world == world]
         figures.append(out_dir / world_file_name(world))
-        plot_curves(figures[-1], mine, f"{world} ({len(mine)} runs)", order, config)
+        with staged_file(figures[-1]) as partial:
+            plot_curves(partial, mine, f"{world} ({len(mine)} runs)", order, config)
     return figures
 
 
@@ -203,7 +208,8 @@ def _write_snapshots(
         warn("no run has snapshots.npz: snapshots.png not written")
         return None
     pairs = [(r, load_snapshots_or_warn(r, warn)) for r in chosen]
-    steps = plot_snapshots(out_dir / SNAPSHOTS_FIGURE, pairs, config)
+    with staged_file(out_dir / SNAPSHOTS_FIGURE) as partial:
+        steps = plot_snapshots(partial, pairs, config)
     return {"snapshot_steps": list(steps), "snapshot_runs": [r.name for r in chosen]}
 
 

@@ -242,6 +242,31 @@ def test_write_report_files_and_numbers(results, tmp_path):
     assert "0.700 ± 0.058" in summary and "+40.0 %" in summary
 
 
+def test_a_report_failing_on_a_full_disk_leaves_the_old_files_whole(results, tmp_path, monkeypatch):
+    import errno
+
+    from matplotlib.figure import Figure
+
+    runs, out = load_runs(results), tmp_path / "out"
+    files, _ = write_report(runs, out, warn=lambda m: None)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    saved = Figure.savefig
+
+    def full_disk(self, path, *args, **kwargs):
+        if "generated_2" in str(path):  # the third figure: the first two are replaced
+            saved(self, path, *args, **kwargs)
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return saved(self, path, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        write_report(runs, out, warn=lambda m: None)
+    after = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert sorted(after) == sorted(before)  # no partial file left behind
+    assert after["curves-generated_2.png"] == before["curves-generated_2.png"]
+    assert is_png(files.figures[0]) and json.loads(files.json.read_text())
+
+
 def test_mixed_budgets_are_flagged(tmp_path):
     write_run(tmp_path / "r", "w", "mapex", 0, steps=200)
     write_run(tmp_path / "r", "w", "nearest", 0, steps=100)
