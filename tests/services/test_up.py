@@ -353,8 +353,8 @@ def test_malformed_payloads_harm_no_process_and_no_result(tmp_path):
             "the four workers to start",
             120,
         )
-        attack(session, "bad-0")
         stray_steps = [step_without_token(session, "bad-0", seq) for seq in (0, 1, 5, 50)]
+        attack(session, "bad-0")
         assert up.wait() == 0, up.log()
         assert watch_exit_code(watch, 60) == 0, (tmp_path / "watch.log").read_text()
     finally:
