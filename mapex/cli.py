@@ -19,6 +19,7 @@ from mapex.methods import METHODS
 from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
 from mapex.prediction.config import add_precision_argument
 from mapex.prediction.weights import WeightsError
+from mapex.team.methods import TEAM_METHODS, check_team_flags
 from mapex.worlds import DEFAULT_WORLD, WorldError, load_world, start_label
 from mapex.worlds.starts import add_start_argument, start_cell
 
@@ -43,7 +44,18 @@ def build_parser() -> argparse.ArgumentParser:
         f"'default' (= {DEFAULT_WORLD}); default: %(default)s",
     )
     run.add_argument(
-        "--method", default="mapex", choices=sorted(METHODS), help="default: %(default)s"
+        "--method",
+        default="mapex",
+        choices=sorted(METHODS) + sorted(TEAM_METHODS),
+        help="default: %(default)s; with --robots > 1 a team method (mapex_team, "
+        "mapex_plus_team, nearest_team, mapex_independent)",
+    )
+    run.add_argument(
+        "--robots",
+        type=int,
+        default=1,
+        help="robots sharing one map (default 1); a team deploys about 1 m apart around the "
+        "start (docs/algorithms.md#teams)",
     )
     run.add_argument(
         "--predictor",
@@ -83,12 +95,17 @@ def run_command(args: argparse.Namespace) -> int:
         destination,
         write_results,
     )
+    from mapex.team.episode import run_team_episode
+    from mapex.team.starts import team_start_cells
 
     if args.steps < 1:
         raise ConfigError(f"--steps must be at least 1 (got {args.steps})")
+    team = check_team_flags(args.method, args.robots)
     config = apply_overrides(ExplorationConfig(steps=args.steps), args.overrides)
     world = load_world(args.world).check_size(config.world.max_cells)
     start_cell(world, args.start, config.world.start_clearance_cells)  # a bad start: no work
+    if team:
+        team_start_cells(world, [args.start], args.robots, config)
     check_destination(args.out)
     predictor = make_predictor(args.predictor, **predictor_options(args))
     with tqdm(
@@ -98,15 +115,16 @@ def run_command(args: argparse.Namespace) -> int:
         disable=args.no_progress,
         file=sys.stderr,
     ) as bar:
-        result = run_episode(
-            world,
-            args.method,
-            predictor,
-            args.start,
-            args.seed,
-            config,
-            on_step=lambda t, *_: bar.update(t - bar.n),
-        )
+        progress = lambda t, *_: bar.update(t - bar.n)  # noqa: E731
+        if team:
+            result = run_team_episode(
+                world, args.method, predictor, args.robots, [args.start], args.seed, config,
+                on_step=progress,
+            )  # fmt: skip
+        else:
+            result = run_episode(
+                world, args.method, predictor, args.start, args.seed, config, on_step=progress
+            )
     out_dir = destination(args.out, result)
     try:
         write_results(result, world, out_dir)
@@ -114,6 +132,9 @@ def run_command(args: argparse.Namespace) -> int:
         print(f"mapex: error: {error}", file=sys.stderr)
         return EXIT_FAILED
     auc = result.curves.auc()
+    if team:
+        lengths = ", ".join(f"{length:.1f}" for length in result.path_lengths_m)
+        print(f"team of {result.robots}: overlap {result.overlap:.3f}, paths {lengths} m")
     print(
         f"{result.method} on {result.world} ({start_label(result.start_spec)}): coverage AUC "
         f"{auc['coverage']:.3f}, IoU AUC {auc['iou']:.3f}, TU AUC {auc['tu']:.3f}, "

@@ -157,6 +157,22 @@ class WorldConfig:
 
 
 @dataclass(frozen=True)
+class TeamConfig:
+    """Several robots sharing one map (docs/algorithms.md#teams)."""
+
+    spacing_cells: int = 10  # default deployment: robots about 1 m apart near the start
+    goal_exclusion_cells: int = 20  # nearest_team: skip frontiers within 2 m of a teammate's goal
+    # a teammate's new claim makes a robot re-plan when it lies this close to its own goal
+    # and scores better
+    claim_conflict_cells: int = 20
+
+    def __post_init__(self) -> None:
+        for name in ("spacing_cells", "goal_exclusion_cells", "claim_conflict_cells"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"team.{name} must be >= 1, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
 class ExplorationConfig:
     """The whole configuration of one exploration episode."""
 
@@ -171,6 +187,7 @@ class ExplorationConfig:
     upen: UpenConfig = field(default_factory=UpenConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
+    team: TeamConfig = field(default_factory=TeamConfig)
 
 
 class ConfigError(ValueError):

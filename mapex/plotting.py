@@ -12,6 +12,8 @@ import numpy as np  # noqa: E402
 
 from mapex.grid import observed_to_probability  # noqa: E402
 
+ROBOT_COLOURS = ("tab:red", "tab:orange", "tab:purple", "tab:cyan", "tab:olive", "tab:pink")
+
 
 def occupancy_image(probability: np.ndarray) -> np.ndarray:
     """Grey image of an occupancy-probability map: free white, unknown grey, walls black."""
@@ -24,9 +26,10 @@ def plot_episode(
     observed: np.ndarray,
     prediction: np.ndarray | None,
     ground_truth: np.ndarray,
-    trajectory: np.ndarray,
+    trajectories: list[np.ndarray],
 ) -> None:
-    """Save a three-panel PNG of the final observed map, predicted map and ground truth."""
+    """Save a three-panel PNG of the final observed map, predicted map and ground truth,
+    with each robot's trajectory (int (n, 2)) in a colour of its own."""
     panels = [("observed map O_T + trajectory", occupancy_image(observed_to_probability(observed)))]
     if prediction is not None:
         panels.append(("predicted map P_T (G)", occupancy_image(prediction)))
@@ -38,9 +41,11 @@ def plot_episode(
     fig, axes = plt.subplots(*layout, figsize=(width, height), squeeze=False)
     for ax, (name, image) in zip(axes.ravel(), panels, strict=True):
         ax.imshow(image, cmap="gray", vmin=0.0, vmax=1.0, interpolation="nearest")
-        ax.plot(trajectory[:, 1], trajectory[:, 0], color="tab:red", linewidth=1.0)
-        ax.plot(trajectory[0, 1], trajectory[0, 0], "o", color="tab:green", markersize=5)
-        ax.plot(trajectory[-1, 1], trajectory[-1, 0], "s", color="tab:blue", markersize=5)
+        for robot, trajectory in enumerate(trajectories):
+            colour = ROBOT_COLOURS[robot % len(ROBOT_COLOURS)]
+            ax.plot(trajectory[:, 1], trajectory[:, 0], color=colour, linewidth=1.0)
+            ax.plot(trajectory[0, 1], trajectory[0, 0], "o", color="tab:green", markersize=5)
+            ax.plot(trajectory[-1, 1], trajectory[-1, 0], "s", color="tab:blue", markersize=5)
         ax.set_title(name, fontsize=9)
         ax.set_xticks([])
         ax.set_yticks([])

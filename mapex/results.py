@@ -26,12 +26,14 @@ import numpy as np
 from mapex.episode import EpisodeResult
 from mapex.grid import quantise_probability
 from mapex.plotting import plot_episode
+from mapex.team.episode import TeamResult
 from mapex.worlds.base import World
 from mapex.worlds.starts import StartSpec, start_label
 
 METRICS_FILE = "metrics.json"
 CURVES_FILE = "curves.csv"
-TRAJECTORY_FILE = "trajectory.csv"
+TRAJECTORY_FILE = "trajectory.csv"  # robot 0's for a team
+TEAM_TRAJECTORIES_FILE = "trajectories.csv"  # every robot's, for a team
 PICTURE_FILE = "final.png"
 SNAPSHOTS_FILE = "snapshots.npz"
 DEFAULT_RESULTS_DIR = Path("results")  # where a run goes without --out
@@ -80,8 +82,10 @@ def _not_a_file(path: Path) -> Path:
 
 
 def run_name(result: EpisodeResult) -> str:
-    """A file-system-safe name for the run, e.g. `generated_0-mapex-start0-seed0`."""
-    return episode_name(result.world, result.method, result.start_spec, result.seed)
+    """A file-system-safe name for the run, e.g. `generated_0-mapex-start0-seed0`
+    (`...-seed0-team2` for a team of two)."""
+    name = episode_name(result.world, result.method, result.start_spec, result.seed)
+    return f"{name}-team{result.robots}" if isinstance(result, TeamResult) else name
 
 
 def episode_name(world: str, method: str, start: StartSpec, seed: int) -> str:
@@ -135,8 +139,25 @@ def summary(result: EpisodeResult) -> dict:
             "replans": [[t, served] for t, served in result.stats.member_workers],
             "metric_samples": [[t, served] for t, served in result.metric_workers],
         },
+        **_team_summary(result),
         "wall_time_s": round(result.wall_time_s, 3),
         "config": dataclasses.asdict(result.config),
+    }
+
+
+def _team_summary(result: EpisodeResult) -> dict:
+    """The team fields of a team run's record (none for a single robot)."""
+    if not isinstance(result, TeamResult):
+        return {}
+    return {
+        "team": {
+            "robots": len(result.trajectories),
+            "starts": [[int(v) for v in path[0]] for path in result.trajectories],
+            "path_length_m": [round(length, 2) for length in result.path_lengths_m],
+            "overlap": round(result.overlap, 4),
+            "replans": [stats.replans for stats in result.robot_stats],
+            "degraded_steps": [stats.degraded_steps for stats in result.robot_stats],
+        }
     }
 
 
@@ -164,8 +185,10 @@ def _write_run_files(result: EpisodeResult, world: World, staging: Path) -> None
         result.final_observed,
         result.final_prediction,
         world.occupancy,
-        result.trajectory,
+        result.trajectories if isinstance(result, TeamResult) else [result.trajectory],
     )
+    if isinstance(result, TeamResult):
+        _write_team_trajectories(result, staging / TEAM_TRAJECTORIES_FILE)
 
 
 @contextlib.contextmanager
@@ -197,6 +220,14 @@ def _write_curves(result: EpisodeResult, path: Path) -> None:
         writer.writerow(["step", "coverage", "iou", "tu"])
         for row in zip(curves.steps, curves.coverage, curves.iou, curves.tu, strict=True):
             writer.writerow([row[0], *(f"{v:.6f}" if math.isfinite(v) else "" for v in row[1:])])
+
+
+def _write_team_trajectories(result: TeamResult, path: Path) -> None:
+    with path.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["step", "robot", "row", "col"])
+        for robot, trajectory in enumerate(result.trajectories):
+            writer.writerows([t, robot, int(r), int(c)] for t, (r, c) in enumerate(trajectory))
 
 
 def _write_trajectory(result: EpisodeResult, path: Path) -> None:

@@ -49,9 +49,10 @@ from mapex.config import (
     argparse_type,
 )
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
-from mapex.methods import ABLATIONS, MAIN_COMPARISON, parse_method_list
+from mapex.methods import ABLATIONS, MAIN_COMPARISON, METHODS, parse_method_list
 from mapex.report.runs import ReportError, load_run
 from mapex.results import METRICS_FILE, check_output_folder, episode_name, move_into_place
+from mapex.team.methods import TEAM_METHODS, check_team_flags
 from mapex.worlds import StartSpec, WorldError, load_world
 from mapex.worlds.starts import start_argument, start_cell, start_label
 from services.codec import DEFAULT_SERVICES
@@ -81,10 +82,12 @@ class Episode:
     method: str
     start: StartSpec
     seed: int
+    robots: int = 1  # a team method's team size
 
     @property
     def name(self) -> str:
-        return episode_name(self.world_name, self.method, self.start, self.seed)
+        name = episode_name(self.world_name, self.method, self.start, self.seed)
+        return f"{name}-team{self.robots}" if self.method in TEAM_METHODS else name
 
     @property
     def run_id(self) -> str:
@@ -99,10 +102,12 @@ def plan_episodes(
     starts: list[int] | dict[str, list[StartSpec]],
     seeds: list[int],
     world_config: WorldConfig = DEFAULT_WORLD_CONFIG,
+    robots: int = 1,
 ) -> list[Episode]:
     """Every combination, worlds outermost. `starts`: the corners for every map, or each
     map's own starts by map name (see `read_starts_file`). Loads each world once to name
-    it and to check its size and every start on it (WorldError naming map and cell)."""
+    it and to check its size and every start on it (WorldError naming map and cell).
+    `robots`: the team size of the team methods (single-robot methods run alone)."""
     episodes = []
     for spec in world_specs:
         world = load_world(spec).check_size(world_config.max_cells)
@@ -110,7 +115,7 @@ def plan_episodes(
         for start in mine:
             start_cell(world, start, world_config.start_clearance_cells)
         episodes += [
-            Episode(spec, world.name, method, start, seed)
+            Episode(spec, world.name, method, start, seed, robots if method in TEAM_METHODS else 1)
             for method, start, seed in itertools.product(methods, mine, seeds)
         ]
     return episodes
@@ -180,6 +185,9 @@ def run_problem(episode: Episode, folder: Path, config: dict | None = None) -> s
         return f"it holds {'/'.join(map(str, found))}, not {'/'.join(map(str, wanted))}"
     if len(record.steps) == 0:
         return "its curves are empty"
+    team = record.metrics.get("team") or {}
+    if episode.method in TEAM_METHODS and team.get("robots") != episode.robots:
+        return f"it holds a team of {team.get('robots')}, not {episode.robots}"
     differing = config_difference(record.metrics.get("config"), config)
     return None if differing is None else f"it was run with another {differing}"
 
@@ -235,6 +243,7 @@ def planner_spec(
         "--start", start_argument(episode.start),
         "--method", episode.method, "--seed", str(episode.seed), "--steps", str(args.steps),
         "--out", str(planner_folder(episode, out_dir)), "--no-progress",
+        "--robots", str(episode.robots),
     ]  # fmt: skip
     for override in args.overrides:
         planner_args += ["--set", override]
@@ -291,7 +300,13 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
     exploration = apply_overrides(ExplorationConfig(), args.overrides)
     methods = list(args.methods) + (list(ABLATIONS) if args.ablations else [])
     starts = args.starts if args.starts_file is None else read_starts_file(args.starts_file)
-    episodes = plan_episodes(args.maps, methods, starts, args.seeds, exploration.world)
+    for method in methods:
+        check_team_flags(method, args.robots if method in TEAM_METHODS else 1)
+    if args.robots > 1 and not any(method in TEAM_METHODS for method in methods):
+        raise ConfigError(f"--robots {args.robots} needs a team method ({', '.join(TEAM_METHODS)})")
+    episodes = plan_episodes(
+        args.maps, methods, starts, args.seeds, exploration.world, robots=args.robots
+    )
     check_output_folder(args.out)
     if remove_staging(args.out):
         log.info("removed half-written runs of an interrupted evaluation")
@@ -372,9 +387,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--methods",
-        type=argparse_type(parse_method_list),
+        type=argparse_type(lambda text: parse_method_list(text, [*METHODS, *TEAM_METHODS])),
         default=list(MAIN_COMPARISON),
-        help="comma-separated (default: " + ",".join(MAIN_COMPARISON) + ")",
+        help="comma-separated (default: "
+        + ",".join(MAIN_COMPARISON)
+        + "); team methods ("
+        + ",".join(TEAM_METHODS)
+        + ") run teams of --robots",
+    )
+    parser.add_argument(
+        "--robots", type=int, default=1, help="team size of the team methods (default 1)"
     )
     parser.add_argument(
         "--ablations", action="store_true", help="add the ablations " + ",".join(ABLATIONS)

@@ -44,6 +44,8 @@ from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
 from mapex.prediction.base import MEMBER_NAMES
 from mapex.results import OutputError, check_destination, describe_end, destination, write_results
+from mapex.team.episode import run_team_episode
+from mapex.team.methods import TEAM_METHODS, check_team_flags
 from mapex.worlds import StartSpec, World, WorldError, load_world, start_label
 from mapex.worlds.starts import add_start_argument, start_cell, start_spec_of
 from services.codec import DEFAULT_SERVICES
@@ -71,10 +73,12 @@ class PlannerError(RuntimeError):
 
 @dataclass(frozen=True)
 class LocalWorld:
-    """Simulate the world in the planner: the world to load and the start (corner or cell)."""
+    """Simulate the world in the planner: the world to load, the start (corner or cell) and
+    the robots (a team of several deploys around the start and shares one map)."""
 
     spec: str
     start: StartSpec
+    robots: int = 1
 
 
 def explore(
@@ -102,7 +106,12 @@ def explore(
     oversized = prediction_size_warning(world.shape, services)
     if oversized is not None:
         log.warning("%s", oversized)
-    publisher = RunPublisher(session, run, robot_id(robot), services)
+    team = local is not None and (local.robots > 1 or method in TEAM_METHODS)
+    robots = local.robots if team else 1
+    publishers = [
+        RunPublisher(session, run, robot_id(k if team else robot), services) for k in range(robots)
+    ]
+    publisher = publishers[0]
     token = session.liveliness().declare_token(alive_planner_key(run))
     try:
         with ZenohEnsemble(session, services) as ensemble:
@@ -111,24 +120,33 @@ def explore(
                 log.warning("not every member has a live worker: the run starts degraded")
             publisher.status(0, "running", f"{method} on {world.name}")
 
-            def on_step(t, explorer, recorder) -> None:
+            def on_step(t, explorers, recorder) -> None:
                 if supervisor_gone():
                     raise PlannerError("the supervisor is gone: run abandoned")
-                publisher.step(t, explorer, recorder)
+                for each, explorer in zip(publishers, explorers, strict=True):
+                    each.step(t, explorer, recorder)
                 if progress is not None:
                     progress(t)
 
-            result = run_episode(
-                world, method, ensemble, start, seed, exploration, on_step,
-                source=source, robot=robot,
-            )  # fmt: skip
+            if team:
+                result = run_team_episode(
+                    world, method, ensemble, robots, [start], seed, exploration, on_step
+                )
+            else:
+                result = run_episode(
+                    world, method, ensemble, start, seed, exploration,
+                    lambda t, explorer, recorder: on_step(t, [explorer], recorder),
+                    source=source, robot=robot,
+                )  # fmt: skip
         result = dataclasses.replace(result, degraded_from_start=oversized)
-        publisher.finished(result, _summary_line(result))
+        for each in publishers:
+            each.finished(result, _summary_line(result))
     except Exception as error:
         publisher.status(0, "failed", f"{type(error).__name__}: {error}")
         raise
     finally:
-        publisher.close()
+        for each in publishers:
+            each.close()
         token.undeclare()
     return result, world
 
@@ -220,7 +238,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--run", required=True, help="run id, the <run> chunk of the keys")
     parser.add_argument("--robot", type=int, default=0, help="robot index in the run (default 0)")
-    parser.add_argument("--method", default="mapex", choices=sorted(METHODS))
+    parser.add_argument("--method", default="mapex", choices=sorted(METHODS) + sorted(TEAM_METHODS))
+    parser.add_argument(
+        "--robots",
+        type=int,
+        default=1,
+        help="with --world: a team of this many robots sharing one map (a team method)",
+    )
     parser.add_argument("--steps", type=int, default=1000, help="time budget T (default 1000)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (UPEN's RRT); default 0")
     parser.add_argument("--out", type=Path, default=None, help="results folder")
@@ -249,7 +273,13 @@ def run_cli(argv: list[str] | None = None) -> int:
         parser.error("--steps must be at least 1 and --robot non-negative")
     if args.world is not None and args.start is None:
         parser.error("--world needs --start")
-    local = None if args.world is None else LocalWorld(args.world, args.start)
+    if args.robots > 1 and args.world is None:
+        parser.error("--robots needs --world (a team is simulated here)")
+    try:
+        check_team_flags(args.method, args.robots)
+    except ConfigError as error:
+        parser.error(str(error))
+    local = None if args.world is None else LocalWorld(args.world, args.start, args.robots)
     configure_logging(f"planner[{args.run}/{robot_id(args.robot)}]")
     try:
         exploration = apply_overrides(ExplorationConfig(steps=args.steps), args.overrides)

@@ -3,6 +3,8 @@ own), selectable by name."""
 
 from __future__ import annotations
 
+from collections.abc import Collection
+
 from mapex.config import ExplorationConfig
 from mapex.methods.base import FrontierScorer, Method, PlanningContext
 from mapex.methods.ig_hector import IgHector
@@ -37,13 +39,14 @@ ABLATIONS = ("deterministic", "no_variance", "observed_map", "no_visibility")
 BEYOND_PAPER = ("mapex_path", "mapex_plus")  # ours, not the paper's (docs/algorithms.md)
 
 
-def parse_method_list(text: str) -> list[str]:
-    """Comma-separated method names -> their list; a one-line ValueError naming the unknown."""
+def parse_method_list(text: str, known: Collection[str] = METHODS) -> list[str]:
+    """Comma-separated method names (of `known`) -> their list; a one-line ValueError naming
+    the unknown."""
     names = [item.strip() for item in text.split(",") if item.strip()]
-    unknown = [name for name in names if name not in METHODS]
+    unknown = [name for name in names if name not in known]
     if unknown or not names:
         raise ValueError(
-            f"unknown method {', '.join(unknown) or repr(text)} (choose from {', '.join(METHODS)})"
+            f"unknown method {', '.join(unknown) or repr(text)} (choose from {', '.join(known)})"
         )
     return names
 

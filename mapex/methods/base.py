@@ -29,7 +29,9 @@ class PlanningContext:
     methods that use none); cost: float32 planning cost map (inf = blocked);
     reachable: bool map of cells the robot can drive to; clusters: the frontier
     clusters the points stand for (None: each point is a cluster of its own);
-    scanned_from: bool map of the cells the robot has scanned from (None: its pose only).
+    scanned_from: bool map of the cells the robot has scanned from (None: its pose only);
+    claimed: bool map of the cells teammates' goals will see (None: alone, or no claims):
+    they are worth nothing here (docs/algorithms.md#teams).
     """
 
     observed: np.ndarray
@@ -42,6 +44,7 @@ class PlanningContext:
     rng: np.random.Generator
     clusters: FrontierClusters | None = None
     scanned_from: np.ndarray | None = None
+    claimed: np.ndarray | None = None
 
     def frontier_distances(self) -> np.ndarray:
         """Euclidean distance in cells from the robot to each frontier, at least 1."""
@@ -49,9 +52,12 @@ class PlanningContext:
         return np.maximum(np.hypot(offsets[:, 0], offsets[:, 1]), 1.0)
 
     def unknown_weights(self, values: np.ndarray | float) -> np.ndarray:
-        """float32 map: `values` on unknown cells, 0 on known ones (not in any visible set)."""
-        unknown = self.observed == UNKNOWN
-        return np.where(unknown, values, 0).astype(np.float32)
+        """float32 map: `values` on unknown cells, 0 on known ones (not in any visible set)
+        and on cells teammates have claimed."""
+        worth = self.observed == UNKNOWN
+        if self.claimed is not None:
+            worth &= ~self.claimed
+        return np.where(worth, values, 0).astype(np.float32)
 
     def can_reach(self, cell: np.ndarray) -> bool:
         """Whether A* finds a path from the robot to this known-free cell.

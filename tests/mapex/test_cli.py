@@ -40,6 +40,19 @@ def test_run_writes_the_results_folder(tmp_path):
     assert (out / "final.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_a_team_run_writes_every_robots_trajectory_and_the_team_record(tmp_path):
+    code = main(["run", "--world", "generated:2", "--method", "nearest_team", "--robots", "3",
+                 "--steps", "40", "--no-progress", "--out", str(tmp_path / "team")])  # fmt: skip
+    assert code == 0
+    metrics = json.loads((tmp_path / "team" / "metrics.json").read_text())
+    team = metrics["team"]
+    assert metrics["method"] == "nearest_team" and team["robots"] == 3
+    assert len(team["path_length_m"]) == len(team["starts"]) == 3 and 0 <= team["overlap"] <= 1
+    rows = (tmp_path / "team" / "trajectories.csv").read_text().splitlines()
+    assert rows[0] == "step,robot,row,col" and len(rows) == 1 + 3 * 41
+    assert (tmp_path / "team" / "final.png").read_bytes()[:4] == b"\x89PNG"
+
+
 @pytest.mark.slow  # runs the command in a process of its own
 @pytest.mark.parametrize(
     "args, message",
@@ -56,6 +69,13 @@ def test_run_writes_the_results_folder(tmp_path):
         (["--precision", "float16"], "invalid choice"),
         (["--predictor", "classical", "--precision", "bfloat16"], "only the 'lama' predictor"),
         (["--set", "world.max_cells=1000"], "above the limit of 1,000"),
+        (["--robots", "2"], "--robots 2 needs a team method"),
+        (["--robots", "0", "--method", "mapex_team"], "--robots must be at least 1"),
+        (["--robots", "x"], "invalid int value"),
+        (
+            ["--robots", "3", "--method", "nearest_team", "--set", "team.spacing_cells=5000"],
+            "room for 1 robots 5000 cells apart",
+        ),
     ],
 )
 def test_bad_input_gives_one_line_error(args, message):

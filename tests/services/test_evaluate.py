@@ -95,6 +95,26 @@ def test_episodes_cover_every_combination_with_run_folder_names():
     )
 
 
+def test_team_methods_run_as_teams_of_the_asked_size():
+    episodes = plan_episodes(["generated:0"], ["mapex", "mapex_team"], [1], [0], robots=2)
+    assert [(e.method, e.robots) for e in episodes] == [("mapex", 1), ("mapex_team", 2)]
+    assert episodes[1].name == "generated_0-mapex_team-start1-seed0-team2"
+
+
+def test_an_evaluation_runs_a_team_through_the_pool(tmp_path):
+    out = tmp_path / "out"
+    command = [
+        sys.executable, "-m", "services.evaluate", "--maps", "generated:0", "--methods",
+        "nearest_team", "--robots", "2", "--steps", "30", "--starts", "0", "--out", str(out),
+        "--no-progress", "--listen", f"tcp/127.0.0.1:{free_loopback_port()}",
+    ]  # fmt: skip
+    completed = subprocess.run(command, cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
+    assert completed.returncode == 0, completed.stderr
+    (record,) = run_records(out).values()
+    assert record["method"] == "nearest_team" and record["team"]["robots"] == 2
+    assert len(record["team"]["path_length_m"]) == 2
+
+
 def test_a_starts_file_gives_each_map_its_own_cells(tmp_path):
     path = tmp_path / "starts.json"
     path.write_text(json.dumps({"generated:0": [[20, 30], [25, 40]], "other": [[1, 1]]}))
@@ -247,6 +267,11 @@ def _started_pids(log_path) -> list[str]:
         (["--maps", "/no/such/map"], "no such map directory"),
         (["--maps", "generated:0", "--methods", "nearest,bogus"], "unknown method"),
         (["--maps", "generated:0", "--jobs", "0"], "--jobs must be at least 1"),
+        (["--maps", "generated:0", "--robots", "2"], "--robots 2 needs a team method"),
+        (
+            ["--maps", "generated:0", "--methods", "mapex_team", "--robots", "0"],
+            "--robots must be at least 1",
+        ),
         (["--maps", "generated:0", "--starts", "7"], "start poses 0-3"),
         (["--maps", "generated:0", "--set", "world.max_cells=1000"], "above the limit of 1,000"),
         (["--maps", "generated:0", "--starts-file", "{file}"], "map 'generated:0' needs a"),
