@@ -190,6 +190,10 @@ class FieldReader:
         self._unread.discard(name)
         return self._fields[name]
 
+    def is_nil(self, name: str) -> bool:
+        """Whether field `name` is present and nil (then it counts as read)."""
+        return self._is_nil(name)
+
     def _is_nil(self, name: str) -> bool:
         """Whether field `name` is present and nil (then it counts as read)."""
         if name in self._fields and self._fields[name] is None:

@@ -38,6 +38,8 @@ class ServicesConfig:
     step_retry_pause_s: tuple[float, float] = (0.2, 2.0)  # back-off between step queries:
     # first pause, doubling up to the second; a world that is gone (a query that returns at
     # once, unanswered) is asked again until the whole step_retries x step_timeout_s is spent
+    team_step_wait_s: float = 10.0  # team world: a robot whose step request is this late
+    # after its first teammate's stands still for that step
     world_wait_s: float = 60.0  # planner start-up: how long to wait for the world's keys
     workers_wait_s: float = 120.0  # planner start-up: how long to wait for every member
     supervisor_max_restarts: int = 5  # a crashed server is restarted this often, then left dead

@@ -169,6 +169,123 @@ class ScanReply(Message):
         return cls(pose, reader.array("n_cells", "uint16", 1), reader.array("hit", "bool", 1))
 
 
+@dataclass(frozen=True, eq=False)
+class TeamStepRequest(Message):
+    """A team robot's planner -> the team's world on `step`: its motion of step seq - 1 (as
+    `StepRequest`), whether it has nothing left to explore (`done`), and, when it re-planned
+    (`claimed`), its new claim: goal [row, col] and score, or nil (no goal), and the
+    claimed cells `claim_visible` bool (rows, cols) (docs/algorithms.md#teams).
+    """
+
+    TYPE: ClassVar[str] = "team_step_request"
+    seq: int
+    cells: np.ndarray
+    done: bool
+    claimed: bool
+    claim_goal: Cell | None
+    claim_score: float | None
+    claim_visible: np.ndarray | None
+    run_token: str | None = None
+
+    def __post_init__(self) -> None:
+        _set(self, "seq", _checked_count(self.TYPE, "seq", self.seq))
+        _set(self, "cells", _checked_cells(self.TYPE, "cells", self.cells))
+        if self.claim_goal is not None:
+            _set(self, "claim_goal", _checked_cell(self.TYPE, "claim_goal", self.claim_goal))
+            _check_array(self.TYPE, "claim_visible", self.claim_visible, np.bool_, 2)
+            if self.claim_score is None or not math.isfinite(self.claim_score):
+                raise ProtocolError(f"{self.TYPE}: a claim needs a finite claim_score")
+        if self.run_token is not None:
+            _set(self, "run_token", _one_line(self.TYPE, "run_token", self.run_token))
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        has_claim = self.claim_goal is not None
+        return {
+            "seq": self.seq, "cells": encode_array(self.cells, config), "done": self.done,
+            "claimed": self.claimed,
+            "claim_goal": list(self.claim_goal) if has_claim else None,
+            "claim_score": float(self.claim_score) if has_claim else None,
+            "claim_visible": encode_array(self.claim_visible, config) if has_claim else None,
+            "run_token": self.run_token,
+        }  # fmt: skip
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> TeamStepRequest:
+        seq, cells = reader.integer("seq"), reader.array("cells", "int32", 2)
+        done, claimed = reader.flag("done"), reader.flag("claimed")
+        goal, score = reader.optional_cell("claim_goal"), reader.optional_number("claim_score")
+        visible = (
+            None if reader.is_nil("claim_visible") else reader.array("claim_visible", "bool", 2)
+        )
+        token = reader.added_text("run_token")
+        return cls(seq, cells, done, claimed, goal, score, visible, token)
+
+
+@dataclass(frozen=True, eq=False)
+class TeamScanReply(Message):
+    """The team's world -> every robot's planner, the reply to a `team_step_request` of seq:
+    every robot's scan after that step (poses int32 (N, 2), n_cells uint16 (N, rays), hit
+    bool (N, rays); `stood_still` bool (N,): robots whose planner did not send the step in
+    time, or that are lost), the claims made at it (`claim_state` uint8 (N,): 0 none, 1 a
+    claim, 2 withdrawn; `claim_goals` int32 (N, 2), `claim_scores` float64 (N,),
+    `claim_visible` bool (N, rows, cols)), and `finished`: every robot was done, no step
+    was taken (the scans are then empty).
+    """
+
+    TYPE: ClassVar[str] = "team_scan_reply"
+    seq: int
+    finished: bool
+    poses: np.ndarray
+    n_cells: np.ndarray
+    hit: np.ndarray
+    stood_still: np.ndarray
+    claim_state: np.ndarray
+    claim_goals: np.ndarray
+    claim_scores: np.ndarray
+    claim_visible: np.ndarray
+
+    def __post_init__(self) -> None:
+        _set(self, "seq", _checked_count(self.TYPE, "seq", self.seq))
+        for name, dtype, ndim in TEAM_REPLY_ARRAYS:
+            _check_array(self.TYPE, name, getattr(self, name), dtype, ndim)
+        robots = len(self.claim_state)
+        scanned = {len(self.poses), len(self.n_cells), len(self.hit)}
+        claims = {len(getattr(self, name)) for name in TEAM_CLAIM_FIELDS}
+        if claims != {robots} or scanned not in ({robots}, {0}) or len(self.stood_still) != robots:
+            raise ProtocolError(f"{self.TYPE}: every per-robot array needs {robots} rows")
+        if self.claim_state.max(initial=0) > 2:
+            raise ProtocolError(f"{self.TYPE}: claim_state holds codes other than 0, 1, 2")
+
+    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
+        fields = {
+            name: encode_array(getattr(self, name), config) for name, _, _ in TEAM_REPLY_ARRAYS
+        }
+        return {"seq": self.seq, "finished": self.finished, **fields}
+
+    @classmethod
+    def _read(cls, reader: FieldReader) -> TeamScanReply:
+        seq, finished = reader.integer("seq"), reader.flag("finished")
+        arrays = {
+            name: reader.array(name, np.dtype(dtype).name, ndim)
+            for name, dtype, ndim in TEAM_REPLY_ARRAYS
+        }
+        return cls(seq, finished, **arrays)
+
+
+CLAIM_NONE, CLAIM_MADE, CLAIM_WITHDRAWN = 0, 1, 2  # claim_state codes of a team reply
+TEAM_CLAIM_FIELDS = ("claim_state", "claim_goals", "claim_scores", "claim_visible")
+TEAM_REPLY_ARRAYS = (
+    ("poses", np.int32, 2),
+    ("n_cells", np.uint16, 2),
+    ("hit", np.bool_, 2),
+    ("stood_still", np.bool_, 1),
+    ("claim_state", np.uint8, 1),
+    ("claim_goals", np.int32, 2),
+    ("claim_scores", np.float64, 1),
+    ("claim_visible", np.bool_, 3),
+)
+
+
 @dataclass(frozen=True)
 class PoseMessage(Message):
     """World -> anyone on `pose`: the robot's cell after step `t`."""

@@ -54,7 +54,12 @@ from services.ensemble_client import ZenohEnsemble
 from services.keys import ID_MAX_CHARS, alive_planner_key, is_valid_id, robot_id
 from services.publishing import RunPublisher
 from services.serving import configure_logging, run_token_from_env, supervisor_gone
-from services.world_client import StepRefusedError, WorldUnavailableError, ZenohWorld
+from services.world_client import (
+    StepRefusedError,
+    WorldUnavailableError,
+    ZenohTeamWorld,
+    ZenohWorld,
+)
 from services.zenoh_config import (
     ZenohConfigError,
     add_zenoh_arguments,
@@ -97,19 +102,24 @@ def explore(
     process (or the `local` world simulated here). `start`, with a world process: the start
     it must have placed the robot at (default: whichever it did)."""
     exploration = exploration or ExplorationConfig()
+    team_starts: list[StartSpec] = []
     if local is None:
         source = ZenohWorld(session, run, services, run_token_from_env())
-        world, start = _remote_start(source, run, robot, exploration, start)
+        world, start, team_starts = _remote_start(source, run, robot, exploration, start)
+        if method in TEAM_METHODS:  # one robot of a team world: every robot's scans come back
+            source = ZenohTeamWorld(session, run, robot, world.shape, services, source.run_token)
     else:
         source, world, start = None, load_world(local.spec), local.start
         start_cell(world, start, exploration.world.start_clearance_cells)  # WorldError if bad
+        team_starts = [start] * (method in TEAM_METHODS)
     oversized = prediction_size_warning(world.shape, services)
     if oversized is not None:
         log.warning("%s", oversized)
-    team = local is not None and (local.robots > 1 or method in TEAM_METHODS)
-    robots = local.robots if team else 1
+    team = method in TEAM_METHODS
+    robots = (local.robots if local is not None else len(team_starts)) if team else 1
+    here = [robot] if team and local is None else list(range(robots))  # robots decided here
     publishers = [
-        RunPublisher(session, run, robot_id(k if team else robot), services) for k in range(robots)
+        RunPublisher(session, run, robot_id(k if team else robot), services) for k in here
     ]
     publisher = publishers[0]
     token = session.liveliness().declare_token(alive_planner_key(run))
@@ -130,8 +140,9 @@ def explore(
 
             if team:
                 result = run_team_episode(
-                    world, method, ensemble, robots, [start], seed, exploration, on_step
-                )
+                    world, method, ensemble, robots, team_starts, seed, exploration, on_step,
+                    source=source, local=here,
+                )  # fmt: skip
             else:
                 result = run_episode(
                     world, method, ensemble, start, seed, exploration,
@@ -170,22 +181,24 @@ def _remote_start(
     robot: int,
     exploration: ExplorationConfig,
     expected: StartSpec | None,
-) -> tuple[World, StartSpec]:
-    """The world process's world and the start of robot `robot` in it: `expected` when the
-    world placed the robot there, else the corner (or cell) it did place it at."""
+) -> tuple[World, StartSpec, list[StartSpec]]:
+    """The world process's world, the start of robot `robot` in it (`expected` when the
+    world placed the robot there, else the corner or cell it did place it at) and the
+    cells of every robot of the run."""
     info, world = source.fetch()
     if not 0 <= robot < len(info.starts):
         raise PlannerError(f"run {run} has {len(info.starts)} robots, there is no robot {robot}")
     clearance = exploration.world.start_clearance_cells
-    placed = (int(info.starts[robot][0]), int(info.starts[robot][1]))
+    cells: list[StartSpec] = [(int(row), int(col)) for row, col in info.starts]
+    placed = cells[robot]
     if expected is None:
-        return world, start_spec_of(world, placed, clearance)
+        return world, start_spec_of(world, placed, clearance), cells
     wanted = start_cell(world, expected, clearance)
     if wanted != placed:
         raise PlannerError(
             f"the world placed robot {robot_id(robot)} at {placed}, not at its start {wanted}"
         )
-    return world, expected
+    return world, expected, cells
 
 
 def _summary_line(result: EpisodeResult) -> str:

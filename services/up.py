@@ -41,7 +41,9 @@ from mapex.config import (
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
 from mapex.results import DEFAULT_RESULTS_DIR, check_output_folder
-from mapex.worlds import DEFAULT_SPEC, StartSpec, WorldError, load_world
+from mapex.team.methods import TEAM_METHODS
+from mapex.team.starts import team_start_cells
+from mapex.worlds import DEFAULT_SPEC, StartSpec, World, WorldError, load_world
 from mapex.worlds.starts import add_start_argument, start_argument, start_cell
 from services.codec import DEFAULT_SERVICES
 from services.config import ServicesConfig
@@ -75,19 +77,26 @@ class Run:
     token: str = ""
 
 
-def plan_runs(args: argparse.Namespace) -> list[Run]:
+def plan_runs(
+    args: argparse.Namespace,
+    world: World | None = None,
+    exploration: ExplorationConfig | None = None,
+) -> list[Run]:
     """The runs asked for: run k starts its robots at corners start + k, start + k + 1, ...
-    (mod 4), or with a cell start its one robot at that cell."""
+    (mod 4), or with a cell start its one robot at that cell; a team (a team method, given
+    `world`) deploys around run k's start (`mapex.team.starts`)."""
     prefix = args.run_prefix or f"up{os.getpid()}"
-    return [
-        Run(
-            f"{prefix}-{k}",
-            _run_starts(args.start, k, args.robots),
-            args.seed + k,
-            secrets.token_hex(16),
-        )  # fmt: skip
-        for k in range(args.runs)
-    ]
+    runs = []
+    for k in range(args.runs):
+        starts = _run_starts(args.start, k, args.robots)
+        if args.method in TEAM_METHODS and world is not None:
+            first = (args.start + k) % 4 if isinstance(args.start, int) else args.start
+            cells = team_start_cells(
+                world, [first], args.robots, exploration or ExplorationConfig()
+            )
+            starts = tuple(cells)
+        runs.append(Run(f"{prefix}-{k}", starts, args.seed + k, secrets.token_hex(16)))
+    return runs
 
 
 def _run_starts(start: StartSpec, run: int, robots: int) -> tuple[StartSpec, ...]:
@@ -119,6 +128,7 @@ def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str
                     str(len(run.starts)),
                     "--starts",
                     *starts,
+                    *(["--team"] if args.method in TEAM_METHODS else []),
                     *zenoh_flags,
                 ),
                 env=secret,
@@ -198,7 +208,7 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
     world = load_world(args.world).check_size(exploration.world.max_cells)
     start_cell(world, args.start, exploration.world.start_clearance_cells)
     check_output_folder(args.out or DEFAULT_RESULTS_DIR)
-    runs = plan_runs(args)
+    runs = plan_runs(args, world, exploration)
     own_config, zenoh_flags = hub_session_config(args, services)
     specs = child_specs(args, runs, zenoh_flags)
     stop = stop_on_signals()
@@ -249,7 +259,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--world", default=DEFAULT_SPEC, help="'default', 'generated:SEED', "
                         "'generated-open:SEED' or a KTH map directory "
                         "(default: %(default)s)")  # fmt: skip
-    parser.add_argument("--method", default="mapex", choices=sorted(METHODS))
+    parser.add_argument(
+        "--method",
+        default="mapex",
+        choices=sorted(METHODS) + sorted(TEAM_METHODS),
+        help="a team method (mapex_team, ...) makes the --robots of a world one team sharing "
+        "a map, deployed about 1 m apart around the start",
+    )
     parser.add_argument("--steps", type=int, default=1000, help="time budget T (default 1000)")
     add_start_argument(parser, 0, "start pose of the first run (default 0)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first run (default 0)")
@@ -272,7 +288,7 @@ def run_cli(argv: list[str] | None = None) -> int:
     for flag in ("steps", "robots", "runs", "replicas", "threads"):
         if getattr(args, flag) < 1:
             parser.error(f"--{flag} must be at least 1")
-    if not isinstance(args.start, int) and args.robots > 1:
+    if not isinstance(args.start, int) and args.robots > 1 and args.method not in TEAM_METHODS:
         parser.error("a cell --start places one robot: use corner starts with --robots")
     if args.run_prefix is not None and not (
         is_valid_id(args.run_prefix) and len(args.run_prefix) <= RUN_PREFIX_MAX_CHARS

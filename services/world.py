@@ -264,14 +264,21 @@ def main(
     exploration: ExplorationConfig = DEFAULT_EXPLORATION,
     services: ServicesConfig = DEFAULT_SERVICES,
     run_token: str | None = None,
+    team: bool = False,
 ) -> int:
     """Serve `world` for `run` with robots at `starts` (corners or cells) until `stop` is set.
 
     Returns the steps served. Raises StartError or WorldError (bad starts, no start pose) before
     any network set-up, and ZenohConfigError when the session is refused. With `run_token`
-    only steps carrying it move a robot.
+    only steps carrying it move a robot. With `team` the robots are one team moved in
+    lockstep (`services.team_world`).
     """
-    server = WorldServer(world, starts, exploration, run_token=run_token)
+    if team:
+        from services.team_world import TeamWorldServer
+
+        server = TeamWorldServer(world, starts, exploration, run_token=run_token, services=services)
+    else:
+        server = WorldServer(world, starts, exploration, run_token=run_token)
     session = open_session(config)
     try:
         return serve(session, server, run, stop or threading.Event(), services)
@@ -300,6 +307,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="CORNER|ROW,COL",
         help="each robot's start: a corner 0-3 or a cell ROW,COL (default: 0 1 ... per robot)",
     )
+    parser.add_argument(
+        "--team",
+        action="store_true",
+        help="the robots are one team sharing a map: steps in lockstep, every planner gets "
+        "every robot's scan and claims (team_step_request / team_scan_reply)",
+    )
     add_zenoh_arguments(parser)
     return parser
 
@@ -318,7 +331,7 @@ def run_cli(argv: list[str] | None = None) -> int:
         token = run_token_from_env()
         if token is None:
             log.warning("no %s set: any client that reaches the hub may step", RUN_TOKEN_ENV)
-        served = main(config, world, args.run, starts, stop, run_token=token)
+        served = main(config, world, args.run, starts, stop, run_token=token, team=args.team)
     except (WorldError, StartError, ZenohConfigError) as error:
         log.error("%s", error)
         return EXIT_USAGE

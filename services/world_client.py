@@ -15,16 +15,22 @@ import numpy as np
 import zenoh
 
 from mapex.sensor import Scan
+from mapex.team.claims import Claim
+from mapex.team.episode import Decision, TeamStep
 from mapex.worlds.base import World
 from services.codec import DEFAULT_SERVICES, ProtocolError
 from services.config import ServicesConfig
 from services.keys import robot_id, robot_key, run_key
 from services.messages import (
+    CLAIM_MADE,
+    CLAIM_WITHDRAWN,
     ErrorReply,
     GroundTruth,
     Message,
     ScanReply,
     StepRequest,
+    TeamScanReply,
+    TeamStepRequest,
     WorldInfo,
     decode_message,
 )
@@ -83,19 +89,27 @@ class ZenohWorld:
         seq = self._next_seq.get(robot, 0)
         key = robot_key(self.run, robot_id(robot), "step")
         payload = StepRequest(seq, cells, self.run_token).encode(self.services)
+        message = self._request(key, payload, seq, ScanReply, self.services.step_timeout_s)
+        self._next_seq[robot] = seq + 1
+        return message.to_scan()
+
+    def _request(
+        self, key: str, payload: bytes, seq: int, kind: type[Message], timeout_s: float
+    ) -> Message:
+        """The world's reply of type `kind` to step query `seq` on `key`, asked again with
+        back-off while unanswered; StepRefusedError or WorldUnavailableError (one line)."""
         began = time.monotonic()
-        deadline = began + self.services.step_retries * self.services.step_timeout_s
+        deadline = began + self.services.step_retries * timeout_s
         pause, longest_pause = self.services.step_retry_pause_s
         attempt = 0
         while True:
             attempt += 1
-            wait_s = max(min(self.services.step_timeout_s, deadline - time.monotonic()), 0.1)
-            message = self._ask(key, payload, (ScanReply, ErrorReply), wait_s)
+            wait_s = max(min(timeout_s, deadline - time.monotonic()), 0.1)
+            message = self._ask(key, payload, (kind, ErrorReply), wait_s)
             if isinstance(message, ErrorReply):
                 raise StepRefusedError(f"{key}: {message.message}")
             if message is not None:
-                self._next_seq[robot] = seq + 1
-                return message.to_scan()
+                return message
             if time.monotonic() + pause >= deadline:
                 break
             log.warning("%s: no reply to step %d (query %d), asking again", key, seq, attempt)
@@ -126,3 +140,62 @@ class ZenohWorld:
             except ProtocolError as error:
                 log.warning("%s: dropped a reply: %s", key, error)
         return None
+
+
+class ZenohTeamWorld(ZenohWorld):
+    """A `mapex.team.episode.TeamStepSource` for robot `robot` of a team world process: it
+    sends this robot's decision of each step and gets every robot's scan and claims back."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        run: str,
+        robot: int,
+        shape: tuple[int, int],
+        services: ServicesConfig = DEFAULT_SERVICES,
+        run_token: str | None = None,
+    ) -> None:
+        super().__init__(session, run, services, run_token)
+        self.robot = robot
+        self.shape = shape
+        self.key = robot_key(run, robot_id(robot), "step")
+
+    def initial(self) -> list[Scan]:
+        """Every robot's scan where it stands (seq 0)."""
+        return self._team_step(0, Decision(self.robot, np.zeros((0, 2), dtype=np.int32))).scans
+
+    def step(self, t: int, decisions: list[Decision]) -> TeamStep:
+        """Send this robot's decision of step t; the team's scans and claims of it."""
+        (mine,) = [d for d in decisions if d.robot == self.robot]
+        return self._team_step(t + 1, mine)
+
+    def _team_step(self, seq: int, decision: Decision) -> TeamStep:
+        claim = decision.claim
+        motion = np.zeros((0, 2)) if decision.motion is None else decision.motion
+        cells = np.asarray(motion, dtype=np.int32).reshape(-1, 2)
+        done = decision.motion is None and seq > 0  # seq 0 asks for the initial scans
+        request = TeamStepRequest(
+            seq, cells, done, decision.claimed, None if claim is None else claim.goal,
+            None if claim is None else claim.score, None if claim is None else claim.visible,
+            self.run_token,
+        )  # fmt: skip
+        wait_s = self.services.step_timeout_s + self.services.team_step_wait_s
+        reply = self._request(self.key, request.encode(self.services), seq, TeamScanReply, wait_s)
+        return _team_step_of(reply, max(seq - 1, 0))
+
+
+def _team_step_of(reply: TeamScanReply, t: int) -> TeamStep:
+    """The `TeamStep` a team reply carries (claims made at step t)."""
+    scans = [
+        Scan((int(pose[0]), int(pose[1])), n_cells.copy(), hit.copy())
+        for pose, n_cells, hit in zip(reply.poses, reply.n_cells, reply.hit, strict=True)
+    ]
+    claims: dict[int, Claim | None] = {}
+    for robot, state in enumerate(reply.claim_state):
+        if state == CLAIM_WITHDRAWN:
+            claims[robot] = None
+        elif state == CLAIM_MADE:
+            goal = (int(reply.claim_goals[robot][0]), int(reply.claim_goals[robot][1]))
+            score, visible = float(reply.claim_scores[robot]), reply.claim_visible[robot].copy()
+            claims[robot] = Claim(robot, t, goal, score, visible)
+    return TeamStep(scans, claims, reply.finished)

@@ -17,30 +17,82 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
 from mapex.config import ExplorationConfig
-from mapex.episode import EpisodeResult, StepSource
+from mapex.episode import EpisodeResult
 from mapex.explorer import Explorer, ExplorerStats
 from mapex.grid import UNKNOWN, Cell, new_observed_map
 from mapex.prediction.base import Predictor
 from mapex.recorder import MetricRecorder
 from mapex.sensor import Scan, integrate_scan
 from mapex.simulator import Simulator
-from mapex.team.claims import ClaimBoard
+from mapex.team.claims import Claim, ClaimBoard
 from mapex.team.methods import TeamScorer, make_team_method
 from mapex.team.starts import team_start_cells
 from mapex.worlds import StartSpec, World
 
 TeamStepListener = Callable[[int, list[Explorer], MetricRecorder], None]
-"""Called after each step t (1..T) with every robot's explorer and the team's recorder."""
+"""Called after each step t (1..T) with the explorers run here and the team's recorder."""
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What robot `robot` does at one step: its motion (None: nothing left for it now) and,
+    when it re-planned with a claiming method (`claimed`), its new claim (None: no goal)."""
+
+    robot: int
+    motion: np.ndarray | None
+    claimed: bool = False
+    claim: Claim | None = None
+
+
+@dataclass(frozen=True)
+class TeamStep:
+    """What the world answers for one step: every robot's scan after it, the claims made at
+    it (robot -> claim, None: withdrawn) and whether the team is finished (no step taken)."""
+
+    scans: list[Scan]
+    claims: dict[int, Claim | None]
+    finished: bool = False
+
+
+class TeamStepSource(Protocol):
+    """Who moves the team and scans: `SimulatedTeam` here, or a world process."""
+
+    def initial(self) -> list[Scan]: ...
+
+    def step(self, t: int, decisions: list[Decision]) -> TeamStep: ...
+
+
+class SimulatedTeam:
+    """The team's world simulated in this process; every robot decides here."""
+
+    def __init__(self, simulator: Simulator, robots: int) -> None:
+        self.simulator = simulator
+        self.robots = robots
+
+    def initial(self) -> list[Scan]:
+        return [self.simulator.scan(robot) for robot in range(self.robots)]
+
+    def step(self, t: int, decisions: list[Decision]) -> TeamStep:
+        claims = {d.robot: d.claim for d in decisions if d.claimed}
+        if all(d.motion is None for d in decisions):
+            return TeamStep([], claims, finished=True)
+        empty = np.zeros((0, 2), dtype=np.int64)
+        scans = [
+            self.simulator.step(d.robot, empty if d.motion is None else d.motion) for d in decisions
+        ]
+        return TeamStep(scans, claims)
 
 
 @dataclass
 class TeamResult(EpisodeResult):
     """A team run's record: the `EpisodeResult` of the merged map (its `trajectory` and
-    `stats` are robot 0's) plus every robot's trajectory, counters and path length."""
+    `stats` are robot 0's, or the first robot run here) plus every robot's trajectory,
+    counters (of the robots run here) and path length."""
 
     trajectories: list[np.ndarray] = field(default_factory=list)  # int (n + 1, 2) per robot
     robot_stats: list[ExplorerStats] = field(default_factory=list)
@@ -52,52 +104,63 @@ class TeamResult(EpisodeResult):
         return len(self.trajectories)
 
 
-class _Team:
-    """The robots' explorers around one shared map, and what each has seen on its own."""
+class Team:
+    """One shared map, the claim board, and the explorers of the robots decided here (all
+    of them in one process; one in a robot's planner process), plus what each robot has
+    seen on its own and where each has been."""
 
     def __init__(
         self,
-        world: World,
+        shape: tuple[int, int],
         method_name: str,
         predictor: Predictor | None,
         robots: int,
         seed: int,
         config: ExplorationConfig,
+        local: Sequence[int],
     ) -> None:
         self.config = config
-        self.observed = new_observed_map(world.shape)
-        self.explorers = []
-        for robot in range(robots):
-            explorer = Explorer(
-                world.shape, make_team_method(method_name, config), predictor, config, seed + robot
-            )
+        self.robots = robots
+        self.observed = new_observed_map(shape)
+        self.explorers: dict[int, Explorer] = {}
+        for robot in local:
+            method = make_team_method(method_name, config)
+            explorer = Explorer(shape, method, predictor, config, seed + robot)
             explorer.observed = self.observed  # one map for the whole team
-            self.explorers.append(explorer)
-        self.seen = [new_observed_map(world.shape) for _ in range(robots)]  # for the overlap
-        self.board = ClaimBoard(world.shape, config.team.claim_conflict_cells)
+            self.explorers[robot] = explorer
+        self.seen = [new_observed_map(shape) for _ in range(robots)]  # for the overlap
+        self.trajectories: list[list[np.ndarray]] = [[] for _ in range(robots)]
+        self.board = ClaimBoard(shape, config.team.claim_conflict_cells)
 
-    def observe(self, scans: Sequence[Scan]) -> None:
-        """Integrate every robot's scan, in robot order, into the shared map."""
-        for explorer, seen, scan in zip(self.explorers, self.seen, scans, strict=True):
-            explorer.observe(scan)
-            integrate_scan(seen, scan, self.config.sensor)
-
-    def motions(self, t: int, done: list[bool]) -> list[np.ndarray | None]:
-        """Each robot's motion for step t (None: nothing left for it now), then the claims
-        made at t settled (module doc)."""
-        motions, made = [], {}
-        for robot, explorer in enumerate(self.explorers):
+    def decide(self, t: int) -> list[Decision]:
+        """The decisions of the robots run here for step t, each seeing the claims as they
+        stood after step t - 1."""
+        decisions = []
+        for robot, explorer in self.explorers.items():
             method: TeamScorer = explorer.method  # type: ignore[assignment]
             method.teammates = self.board.teammates_of(robot)
             replans = explorer.stats.replans
             motion = explorer.next_motion(t)
-            if explorer.stats.replans != replans and method.claims:
-                made[robot] = method.claim_of(robot, t)
-            done[robot] = motion is None
-            motions.append(motion)
-        for robot in self.board.settle(made):
-            self.explorers[robot].goal = self.explorers[robot].path = None
-        return motions
+            claimed = explorer.stats.replans != replans and method.claims
+            claim = method.claim_of(robot, t) if claimed else None
+            decisions.append(Decision(robot, motion, claimed, claim))
+        return decisions
+
+    def settle(self, claims: dict[int, Claim | None]) -> None:
+        """Settle the claims made at one step; robots run here that lost theirs re-plan."""
+        for robot in self.board.settle(claims):
+            if robot in self.explorers:
+                self.explorers[robot].goal = self.explorers[robot].path = None
+
+    def observe(self, scans: Sequence[Scan]) -> None:
+        """Integrate every robot's scan, in robot order, into the shared map."""
+        for robot, scan in enumerate(scans):
+            if robot in self.explorers:
+                self.explorers[robot].observe(scan)
+            else:
+                integrate_scan(self.observed, scan, self.config.sensor)
+            integrate_scan(self.seen[robot], scan, self.config.sensor)
+            self.trajectories[robot].append(np.asarray(scan.pose, dtype=np.int64))
 
     def overlap(self) -> float:
         known = np.stack([seen != UNKNOWN for seen in self.seen])
@@ -114,47 +177,43 @@ def run_team_episode(
     seed: int = 0,
     config: ExplorationConfig | None = None,
     on_step: TeamStepListener | None = None,
-    source: StepSource | None = None,
+    source: TeamStepSource | None = None,
+    local: Sequence[int] | None = None,
 ) -> TeamResult:
     """Explore `world` with `robots` robots of team method `method_name` (module doc).
 
     `starts`: one start the team deploys around (`team.spacing_cells` apart) or one per
-    robot. `source` (default: an in-process `Simulator`) moves and scans robots 0..N-1.
+    robot. `source` (default: `SimulatedTeam`) moves and scans the team; `local`: the robots
+    decided here (default: all; a robot's planner process runs only its own).
     """
     config = config or ExplorationConfig()
     world.check_size(config.world.max_cells)
     cells = team_start_cells(world, list(starts), robots, config)
     began = time.perf_counter()
     if source is None:
-        source = Simulator(world, cells, config.sensor, config.motion)
-    team = _Team(world, method_name, predictor, robots, seed, config)
+        source = SimulatedTeam(Simulator(world, cells, config.sensor, config.motion), robots)
+    local = list(range(robots)) if local is None else list(local)
+    team = Team(world.shape, method_name, predictor, robots, seed, config, local)
     recorder = MetricRecorder(world, cells[0], predictor, config.metrics)
-    team.observe([source.scan(robot) for robot in range(robots)])
-    trajectories = [[explorer.pose.copy()] for explorer in team.explorers]
-    finished_at, done = None, [False] * robots
+    team.observe(source.initial())
+    finished_at = None
     for t in range(config.steps + 1):
         if recorder.is_sample_step(t):
             recorder.record(t, team.observed)
         if t == config.steps:
             break
-        motions = team.motions(t, done)
-        if all(done):
+        step = source.step(t, team.decide(t))
+        team.settle(step.claims)
+        if step.finished:
             finished_at = t
             recorder.hold_to_end(t, config.steps, team.observed)
             break
-        empty = np.zeros((0, 2), dtype=np.int64)
-        scans = [
-            source.step(robot, empty if motion is None else motion)
-            for robot, motion in enumerate(motions)
-        ]
-        team.observe(scans)
-        for trajectory, explorer in zip(trajectories, team.explorers, strict=True):
-            trajectory.append(explorer.pose.copy())
+        team.observe(step.scans)
         if on_step is not None:
-            on_step(t + 1, team.explorers, recorder)
+            on_step(t + 1, list(team.explorers.values()), recorder)
     recorder.flush()
     return _result(world, method_name, predictor, cells, starts, seed, config, team, recorder,
-                   trajectories, finished_at, time.perf_counter() - began)  # fmt: skip
+                   finished_at, time.perf_counter() - began)  # fmt: skip
 
 
 def _result(
@@ -165,17 +224,16 @@ def _result(
     starts: Sequence[StartSpec],
     seed: int,
     config: ExplorationConfig,
-    team: _Team,
+    team: Team,
     recorder: MetricRecorder,
-    trajectories: list[list[np.ndarray]],
     finished_at: int | None,
     wall_time_s: float,
 ) -> TeamResult:
-    paths = [np.asarray(path, dtype=np.int64) for path in trajectories]
+    paths = [np.asarray(path, dtype=np.int64) for path in team.trajectories]
     lengths = [
         float(np.hypot(*np.diff(path, axis=0).T).sum()) * world.resolution_m for path in paths
     ]
-    first = team.explorers[0]
+    first = next(iter(team.explorers.values()))
     start = starts[0] if len(starts) == 1 else None
     return TeamResult(
         world=world.name,
@@ -198,7 +256,7 @@ def _result(
         metric_workers=recorder.member_workers,
         snapshots=recorder.snapshots,
         trajectories=paths,
-        robot_stats=[explorer.stats for explorer in team.explorers],
+        robot_stats=[explorer.stats for explorer in team.explorers.values()],
         path_lengths_m=lengths,
         overlap=team.overlap(),
     )

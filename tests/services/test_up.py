@@ -34,6 +34,7 @@ from mapex.config import ExplorationConfig
 from mapex.episode import run_episode
 from mapex.prediction.learned import LearnedEnsemble
 from mapex.results import write_results
+from mapex.team.episode import run_team_episode
 from mapex.worlds import load_world
 from mapex.worlds.starts import eligible_start_cells
 from services.codec import DEFAULT_SERVICES, SCHEMA_VERSION
@@ -135,6 +136,40 @@ def test_distributed_run_equals_in_process_run_and_a_viewer_sees_its_maps(tmp_pa
         assert kind in watch_log, watch_log
     assert (tmp_path / "watch.png").stat().st_size > 0
     assert (tmp_path / "watch.gif").stat().st_size > 0
+
+
+def test_a_team_through_services_up_equals_the_in_process_team(tmp_path):
+    steps = 200
+    up, _ = start_up(tmp_path, "team", "--method", "mapex_team", "--robots", "2",
+                     "--steps", str(steps))  # fmt: skip
+    try:
+        assert up.wait() == 0, up.log()
+    finally:
+        up.kill()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        world = load_world(WORLD)
+        expected = run_team_episode(
+            world, "mapex_team", LearnedEnsemble(), 2, [0], 0, ExplorationConfig(steps=steps)
+        )
+    finally:
+        torch.set_num_threads(threads)
+    for robot in (0, 1):
+        folder = tmp_path / "runs" / f"team-0-r{robot}"
+        metrics, _, curves = read_run(folder)
+        rows = np.loadtxt(folder / "trajectories.csv", delimiter=",", skiprows=1, dtype=np.int64)
+        for mate in (0, 1):  # every planner knows where every robot went
+            path = rows[rows[:, 1] == mate][:, 2:]
+            np.testing.assert_array_equal(path, expected.trajectories[mate])
+        assert metrics["auc"] == {k: round(v, 6) for k, v in expected.curves.auc().items()}
+        assert [float(row[1]) for row in curves[1:]] == pytest.approx(
+            expected.curves.coverage, abs=1e-6
+        )
+        with np.load(folder / "snapshots.npz") as snapshots:
+            assert list(snapshots["steps"]) == [200]
+            np.testing.assert_array_equal(snapshots["observed"][0], expected.snapshots[200][0])
+        assert metrics["team"]["overlap"] == round(expected.overlap, 4)
 
 
 def kill_child_at_step(up: UpProcess, endpoint: str, run: str, child: str, step: int) -> None:
