@@ -157,6 +157,7 @@ def _team_summary(result: EpisodeResult) -> dict:
             "overlap": round(result.overlap, 4),
             "replans": [stats.replans for stats in result.robot_stats],
             "degraded_steps": [stats.degraded_steps for stats in result.robot_stats],
+            "lost_at": {f"r{robot}": t for robot, t in sorted(result.lost_at.items())},
         }
     }
 

@@ -7,7 +7,7 @@
 * worker health probes: `mapex/@v1/health/<member>/<worker_id>` (answered at once, even while
   the worker computes, with how long its current prediction has been running);
 * liveliness tokens: `mapex/@v1/alive/predict/<member>/<worker_id>`,
-  `mapex/@v1/alive/world/<run>` and `mapex/@v1/alive/planner/<run>`.
+  `mapex/@v1/alive/world/<run>` and `mapex/@v1/alive/planner/<run>/<robot>`.
 
 Run, robot and worker ids match `[a-z0-9_-]{1,ID_MAX_CHARS}`; "predict", "health" and "alive"
 are not run ids (they would clash with the keys above).
@@ -84,12 +84,14 @@ class HealthKey:
 
 @dataclass(frozen=True)
 class AliveKey:
-    """A parsed liveliness key; `run` for world/planner, `member` and `worker_id` for predict."""
+    """A parsed liveliness key; `run` for world/planner (and `robot` for a planner),
+    `member` and `worker_id` for predict."""
 
     role: str
     run: str | None = None
     member: str | None = None
     worker_id: str | None = None
+    robot: str | None = None
 
 
 ParsedKey = RobotKey | RunKey | PredictKey | HealthKey | AliveKey
@@ -148,9 +150,14 @@ def alive_world_key(run: str) -> str:
     return f"{KEY_PREFIX}/alive/world/{_run_id(run)}"
 
 
-def alive_planner_key(run: str) -> str:
-    """Liveliness token of the planner of `run`."""
-    return f"{KEY_PREFIX}/alive/planner/{_run_id(run)}"
+def alive_planner_key(run: str, robot: str) -> str:
+    """Liveliness token of the planner of robot `robot` of `run`."""
+    return f"{KEY_PREFIX}/alive/planner/{_run_id(run)}/{_id(robot, 'robot')}"
+
+
+def alive_planner_pattern(run: str) -> str:
+    """The liveliness tokens of every planner of `run`."""
+    return f"{KEY_PREFIX}/alive/planner/{_run_id(run)}/*"
 
 
 def parse_key(key: str) -> ParsedKey:
@@ -184,8 +191,10 @@ def _parse_alive(chunks: list[str]) -> AliveKey | None:
     role, ids = chunks[0], chunks[1:]
     if role == "predict" and len(ids) == 2 and ids[0] in MEMBERS and is_valid_id(ids[1]):
         return AliveKey(role, member=ids[0], worker_id=ids[1])
-    if role in ("world", "planner") and len(ids) == 1 and _is_run_id(ids[0]):
+    if role == "world" and len(ids) == 1 and _is_run_id(ids[0]):
         return AliveKey(role, run=ids[0])
+    if role == "planner" and len(ids) == 2 and _is_run_id(ids[0]) and is_valid_id(ids[1]):
+        return AliveKey(role, run=ids[0], robot=ids[1])
     return None
 
 

@@ -228,8 +228,9 @@ class TeamScanReply(Message):
     bool (N, rays); `stood_still` bool (N,): robots whose planner did not send the step in
     time, or that are lost), the claims made at it (`claim_state` uint8 (N,): 0 none, 1 a
     claim, 2 withdrawn; `claim_goals` int32 (N, 2), `claim_scores` float64 (N,),
-    `claim_visible` bool (N, rows, cols)), and `finished`: every robot was done, no step
-    was taken (the scans are then empty).
+    `claim_visible` bool (N, rows, cols)), `lost` bool (N,): robots whose planner is gone
+    (its liveliness token went; its claim is withdrawn at the step it is first lost), and
+    `finished`: every robot left was done, no step was taken (the scans are then empty).
     """
 
     TYPE: ClassVar[str] = "team_scan_reply"
@@ -243,6 +244,7 @@ class TeamScanReply(Message):
     claim_goals: np.ndarray
     claim_scores: np.ndarray
     claim_visible: np.ndarray
+    lost: np.ndarray
 
     def __post_init__(self) -> None:
         _set(self, "seq", _checked_count(self.TYPE, "seq", self.seq))
@@ -251,7 +253,8 @@ class TeamScanReply(Message):
         robots = len(self.claim_state)
         scanned = {len(self.poses), len(self.n_cells), len(self.hit)}
         claims = {len(getattr(self, name)) for name in TEAM_CLAIM_FIELDS}
-        if claims != {robots} or scanned not in ({robots}, {0}) or len(self.stood_still) != robots:
+        flags = {len(self.stood_still), len(self.lost)}
+        if claims != {robots} or scanned not in ({robots}, {0}) or flags != {robots}:
             raise ProtocolError(f"{self.TYPE}: every per-robot array needs {robots} rows")
         if self.claim_state.max(initial=0) > 2:
             raise ProtocolError(f"{self.TYPE}: claim_state holds codes other than 0, 1, 2")
@@ -283,6 +286,7 @@ TEAM_REPLY_ARRAYS = (
     ("claim_goals", np.int32, 2),
     ("claim_scores", np.float64, 1),
     ("claim_visible", np.bool_, 3),
+    ("lost", np.bool_, 1),
 )
 
 

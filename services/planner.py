@@ -122,7 +122,10 @@ def explore(
         RunPublisher(session, run, robot_id(k if team else robot), services) for k in here
     ]
     publisher = publishers[0]
-    token = session.liveliness().declare_token(alive_planner_key(run))
+    tokens = [
+        session.liveliness().declare_token(alive_planner_key(run, robot_id(k)))
+        for k in (here if team else [robot])
+    ]
     try:
         with ZenohEnsemble(session, services) as ensemble:
             publisher.status(0, "starting", f"waiting for members {', '.join(MEMBER_NAMES)}")
@@ -158,7 +161,8 @@ def explore(
     finally:
         for each in publishers:
             each.close()
-        token.undeclare()
+        for token in tokens:
+            token.undeclare()
     return result, world
 
 

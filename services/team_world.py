@@ -6,8 +6,10 @@ request of seq s is in (or `ServicesConfig.team_step_wait_s` has passed since th
 arrived: a late robot stands still for that step), then every robot moves, and every
 planner gets the same `team_scan_reply`: all robots' scans and the claims made at s. A
 request for an earlier seq (a retry, or a robot that was late) gets that step's reply again
-(the last few are kept); motions of late requests are not applied. The reply says
-`finished` (and nobody moves) when every robot that sent the step had nothing left.
+(the last few are kept); motions of late requests are not applied. A robot whose planner's
+liveliness token goes is lost: nobody waits for it any more, it stands still, and its claim
+is withdrawn. The reply says `finished` (and nobody moves) when every robot left had
+nothing left to explore.
 """
 
 from __future__ import annotations
@@ -18,13 +20,20 @@ import time
 from collections import OrderedDict
 
 import numpy as np
+import zenoh
 
 from mapex.config import ExplorationConfig
 from mapex.simulator import MotionError
 from mapex.worlds import StartSpec, World
 from services.codec import DEFAULT_SERVICES, Payload, ProtocolError
 from services.config import ServicesConfig
-from services.keys import robot_id
+from services.keys import (
+    ROBOT_ID_PREFIX,
+    AliveKey,
+    alive_planner_pattern,
+    parse_key,
+    robot_id,
+)
 from services.messages import (
     CLAIM_MADE,
     CLAIM_WITHDRAWN,
@@ -59,6 +68,34 @@ class TeamWorldServer(WorldServer):
         self._first_arrival: float | None = None
         self._replies: OrderedDict[int, TeamScanReply] = OrderedDict()
         self._clock = threading.Condition()
+        self.lost: set[int] = set()
+        self._announced: set[int] = set()  # lost robots whose claim was withdrawn
+
+    def watch_planners(self, session: zenoh.Session, run: str) -> zenoh.LivelinessSubscriber:
+        """Mark a robot lost when its planner's liveliness token goes (undeclare the
+        returned subscriber when done)."""
+        return session.liveliness().declare_subscriber(
+            alive_planner_pattern(run), self._on_planner_token, history=True
+        )
+
+    def planner_gone(self, robot: int) -> None:
+        """Robot `robot`'s planner is gone: stop waiting for it."""
+        with self._clock:
+            if robot not in self.lost:
+                log.warning("robot %s is lost: its planner is gone", robot_id(robot))
+                self.lost.add(robot)
+                self._clock.notify_all()
+
+    def _on_planner_token(self, sample: zenoh.Sample) -> None:
+        try:
+            key = parse_key(str(sample.key_expr))
+        except ProtocolError as error:
+            log.warning("ignored a planner token: %s", error)
+            return
+        robot = _robot_index(key.robot) if isinstance(key, AliveKey) else None
+        gone = sample.kind == zenoh.SampleKind.DELETE
+        if gone and robot is not None and 0 <= robot < self.n_robots:
+            self.planner_gone(robot)
 
     def answer_step(self, robot: int, payload: Payload | None) -> TeamScanReply | ErrorReply:
         """The team reply for a valid request of robot `robot`, once its step is served."""
@@ -87,7 +124,8 @@ class TeamWorldServer(WorldServer):
         deadline = self._first_arrival + self.services.team_step_wait_s
         while request.seq not in self._replies:
             remaining = deadline - time.monotonic()
-            if len(self._requests) == self.n_robots or remaining <= 0:
+            awaited = set(range(self.n_robots)) - self.lost
+            if awaited <= self._requests.keys() or remaining <= 0:
                 self._serve()
             else:
                 self._clock.wait(remaining)
@@ -97,10 +135,11 @@ class TeamWorldServer(WorldServer):
         """Move every robot (late ones stand still), then publish and cache the reply."""
         seq, requests = self.seq, self._requests
         late = [robot for robot in range(self.n_robots) if robot not in requests]
-        if late:
-            names = ", ".join(robot_id(robot) for robot in late)
+        slow = [robot for robot in late if robot not in self.lost]
+        if slow:
+            names = ", ".join(robot_id(robot) for robot in slow)
             log.warning("step %d: no request from %s in time: standing still", seq, names)
-        finished = seq > 0 and not late and all(r.done for r in requests.values())
+        finished = seq > 0 and not slow and all(r.done for r in requests.values())
         replies = []
         if not finished:
             replies = [
@@ -145,12 +184,24 @@ class TeamWorldServer(WorldServer):
             if request.claim_goal is not None:
                 goals[robot], scores[robot] = request.claim_goal, request.claim_score
                 visible[robot] = request.claim_visible
+        for robot in sorted(self.lost - self._announced):  # its claim expires
+            state[robot] = CLAIM_WITHDRAWN
+            self._announced.add(robot)
         stood = np.zeros(n, dtype=bool)
         stood[late] = True
+        lost = np.zeros(n, dtype=bool)
+        lost[sorted(self.lost)] = True
         return TeamScanReply(
             seq, finished,
             np.array([s.pose for s in scans], dtype=np.int32).reshape(-1, 2),
             np.array([s.n_cells for s in scans], dtype=np.uint16).reshape(len(scans), rays),
             np.array([s.hit for s in scans], dtype=bool).reshape(len(scans), rays),
-            stood, state, goals, scores, visible,
+            stood, state, goals, scores, visible, lost,
         )  # fmt: skip
+
+
+def _robot_index(robot: str | None) -> int | None:
+    """The index of robot id `r<k>`, or None."""
+    if robot is None or not robot.startswith(ROBOT_ID_PREFIX) or not robot[1:].isdigit():
+        return None
+    return int(robot[1:])

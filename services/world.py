@@ -166,6 +166,10 @@ class WorldServer:
             self.on_step(robot, request.seq, reply)
         return reply
 
+    def watch_planners(self, session: zenoh.Session, run: str) -> zenoh.LivelinessSubscriber | None:
+        """Follow the planners' liveliness (a team world does; one robot's does not)."""
+        return None
+
     def _authorised(self, request: StepRequest) -> bool:
         if self.run_token is None:
             return True
@@ -198,6 +202,7 @@ def serve(
     session.put(run_key(run, "world_info"), info.encode())
     session.put(run_key(run, "ground_truth"), truth.encode())
     token = session.liveliness().declare_token(alive_world_key(run))
+    watcher = server.watch_planners(session, run)
     log.info(
         "serving world %s %s for run %s: robots at %s", info.name, info.shape, run, server.starts
     )
@@ -205,6 +210,8 @@ def serve(
         wait_for(stop)
     finally:
         token.undeclare()
+        if watcher is not None:
+            watcher.undeclare()
         servers.close(services.world_drain_s)
         step_publisher.close()
         for publisher in publishers.values():

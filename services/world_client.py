@@ -198,4 +198,5 @@ def _team_step_of(reply: TeamScanReply, t: int) -> TeamStep:
             goal = (int(reply.claim_goals[robot][0]), int(reply.claim_goals[robot][1]))
             score, visible = float(reply.claim_scores[robot]), reply.claim_visible[robot].copy()
             claims[robot] = Claim(robot, t, goal, score, visible)
-    return TeamStep(scans, claims, reply.finished)
+    lost = tuple(int(robot) for robot in np.flatnonzero(reply.lost))
+    return TeamStep(scans, claims, reply.finished, lost)

@@ -26,7 +26,7 @@ def test_every_key_of_the_protocol_is_documented_and_no_other():
         f"{KEY_PREFIX}/health/<member>/<worker_id>",
         f"{KEY_PREFIX}/alive/predict/<member>/<worker_id>",
         f"{KEY_PREFIX}/alive/world/<run>",
-        f"{KEY_PREFIX}/alive/planner/<run>",
+        f"{KEY_PREFIX}/alive/planner/<run>/<robot>",
     }
     assert _documented_keys() == expected
 

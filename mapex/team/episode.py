@@ -57,6 +57,7 @@ class TeamStep:
     scans: list[Scan]
     claims: dict[int, Claim | None]
     finished: bool = False
+    lost: tuple[int, ...] = ()  # robots whose planner is gone (a world process says so)
 
 
 class TeamStepSource(Protocol):
@@ -98,6 +99,7 @@ class TeamResult(EpisodeResult):
     robot_stats: list[ExplorerStats] = field(default_factory=list)
     path_lengths_m: list[float] = field(default_factory=list)
     overlap: float = 0.0  # share of observed cells that more than one robot observed
+    lost_at: dict[int, int] = field(default_factory=dict)  # robot -> step it was found lost
 
     @property
     def robots(self) -> int:
@@ -131,6 +133,12 @@ class Team:
         self.seen = [new_observed_map(shape) for _ in range(robots)]  # for the overlap
         self.trajectories: list[list[np.ndarray]] = [[] for _ in range(robots)]
         self.board = ClaimBoard(shape, config.team.claim_conflict_cells)
+        self.lost_at: dict[int, int] = {}
+
+    def mark_lost(self, robots: Sequence[int], t: int) -> None:
+        """Note the step at which each robot of `robots` was first reported lost."""
+        for robot in robots:
+            self.lost_at.setdefault(robot, t)
 
     def decide(self, t: int) -> list[Decision]:
         """The decisions of the robots run here for step t, each seeing the claims as they
@@ -204,6 +212,7 @@ def run_team_episode(
             break
         step = source.step(t, team.decide(t))
         team.settle(step.claims)
+        team.mark_lost(step.lost, t)
         if step.finished:
             finished_at = t
             recorder.hold_to_end(t, config.steps, team.observed)
@@ -259,4 +268,5 @@ def _result(
         robot_stats=[explorer.stats for explorer in team.explorers.values()],
         path_lengths_m=lengths,
         overlap=team.overlap(),
+        lost_at=dict(team.lost_at),
     )

@@ -306,11 +306,11 @@ def test_the_planner_sees_the_liveliness_token_of_each_role(sessions):
     tokens = {
         "world": alive_world_key("run0"),
         "worker": alive_predictor_key("g", "w1"),
-        "planner2": alive_planner_key("run0"),  # another planner: not the one that looks
+        "planner2": alive_planner_key("run0", "r0"),  # another planner: not the one that looks
     }
     forged = {  # tokens of roles these sessions do not hold
         "rogue": alive_predictor_key("g", "rogue"),
-        "viewer2": alive_planner_key("forged"),
+        "viewer2": alive_planner_key("forged", "r0"),
         "world": alive_predictor_key("g", "world"),
     }
     declared = [
@@ -347,7 +347,7 @@ def test_a_rogue_user_receives_nothing(sessions):
         rogue.declare_subscriber("mapex/@v1/**", rogue_inbox),
         rogue.liveliness().declare_subscriber("mapex/@v1/**", rogue_tokens, history=True),
     ]
-    token = planner.liveliness().declare_token(alive_planner_key("run1"))
+    token = planner.liveliness().declare_token(alive_planner_key("run1", "r0"))
     try:
 
         def published() -> bool:

@@ -84,7 +84,11 @@ from services.protocol import (
             AliveKey("predict", member="g", worker_id="host1_3"),
         ),
         (alive_world_key("r"), "mapex/@v1/alive/world/r", AliveKey("world", run="r")),
-        (alive_planner_key("r"), "mapex/@v1/alive/planner/r", AliveKey("planner", run="r")),
+        (
+            alive_planner_key("r", "r1"),
+            "mapex/@v1/alive/planner/r/r1",
+            AliveKey("planner", run="r", robot="r1"),
+        ),
     ],
 )
 def test_keys_are_built_and_parsed_back(key, expected, parsed):

@@ -15,7 +15,7 @@ from services.messages import ErrorReply, TeamScanReply, TeamStepRequest
 from services.team_world import TeamWorldServer
 
 CONFIG = ExplorationConfig()
-QUICK = ServicesConfig(team_step_wait_s=0.3)
+QUICK = ServicesConfig(team_step_wait_s=2.0)
 
 
 @pytest.fixture
@@ -84,3 +84,15 @@ def test_steps_without_the_token_or_out_of_order_are_refused(server):
     reply = server.answer_step(0, request(3))
     assert isinstance(reply, ErrorReply) and "out of order" in reply.message
     assert "malformed team step request" in server.answer_step(0, b"\x00junk").message
+
+
+def test_a_lost_robot_is_not_waited_for_and_its_claim_expires(server):
+    together(server, {0: request(0), 1: request(0)})
+    visible = np.zeros(server.world.shape, dtype=bool)
+    together(server, {0: request(1), 1: request(1, claim=((30, 30), 1.0, visible))})
+    server.planner_gone(1)
+    (reply,) = together(server, {0: request(2)}).values()
+    assert list(reply.lost) == [False, True] and list(reply.stood_still) == [False, True]
+    assert list(reply.claim_state) == [0, 2]  # robot 1's claim is withdrawn, once
+    (after,) = together(server, {0: request(3, done=True)}).values()
+    assert list(after.claim_state) == [0, 0] and after.finished  # the robots left are done

@@ -206,6 +206,26 @@ def test_a_worker_killed_mid_run_is_restarted_and_the_run_completes(tmp_path):
     assert len(up.children()["predictor-g"]) == 2
 
 
+def test_a_team_goes_on_without_a_killed_planner_and_marks_its_robot_lost(tmp_path):
+    up, endpoint = start_up(tmp_path, "tkill", "--method", "nearest_team", "--robots", "2",
+                            "--steps", "300")  # fmt: skip
+    try:
+        kill_child_at_step(up, endpoint, "tkill-0", "planner-tkill-0-r1", 50)
+        assert up.wait() == 1, up.log()  # a planner failed; the team's run went on
+    finally:
+        up.kill()
+    metrics, _, curves = read_run(tmp_path / "runs" / "tkill-0-r0")
+    assert int(curves[-1][0]) == 300
+    lost_at = metrics["team"]["lost_at"]
+    assert list(lost_at) == ["r1"] and 50 <= lost_at["r1"] < 300, lost_at
+    rows = np.loadtxt(tmp_path / "runs" / "tkill-0-r0" / "trajectories.csv", delimiter=",",
+                      skiprows=1, dtype=np.int64)  # fmt: skip
+    lost_path = rows[rows[:, 1] == 1][:, 2:]
+    assert (lost_path[lost_at["r1"] + 1 :] == lost_path[-1]).all()  # it stood still since
+    assert "robot r1 is lost: its planner is gone" in up.log()
+    assert not (tmp_path / "runs" / "tkill-0-r1").exists()
+
+
 def test_a_world_killed_mid_run_ends_the_run_at_once_naming_it(tmp_path):
     up, endpoint = start_up(tmp_path, "wkill", "--method", "nearest", "--steps", "1000")
     try:
@@ -377,7 +397,7 @@ def test_malformed_payloads_harm_no_process_and_no_result(tmp_path):
     try:
         until(lambda: "planner-bad-0-r0" in up.children(), "up to start its children", 60)
         until(
-            lambda: list(session.liveliness().get(alive_planner_key("bad-0"), timeout=1.0)),
+            lambda: list(session.liveliness().get(alive_planner_key("bad-0", "r0"), timeout=1.0)),
             "the planner to start",
             120,
         )
