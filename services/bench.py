@@ -10,7 +10,10 @@ On one map (default: KTH 50015847, the largest development map) it measures
 4. what a hung worker costs (DESIGN: at most one timeout): a `--hung-steps` `mapex` run with
    a g1 worker that stops answering after three predictions but keeps its session, against
    the same run with that worker healthy (g1 started by hand beside services.up's g, g2,
-   g3 in both), and how many queries waited out the timeout (from the planner's log).
+   g3 in both), and how many queries waited out the timeout (from the planner's log);
+5. a team: the per-step wall time of a `--team-steps` `mapex_team` run of 4 robots through
+   `services.up` (one planner per robot, the team world, one shared pool) against a
+   single-robot `mapex` run of the same length.
 Each figure is a median over `--repeat` runs. Benchmarks print figures; they never fail.
 """
 
@@ -138,10 +141,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pool-repeat", type=int, default=1, help="runs per pool figure")
     parser.add_argument(
         "--parts",
-        default="overhead,mapex,pool,hung",
-        help="comma-separated subset of overhead,mapex,pool,hung (default: all)",
+        default="overhead,mapex,pool,hung,team",
+        help="comma-separated subset of overhead,mapex,pool,hung,team (default: all)",
     )
     parser.add_argument("--hung-steps", type=int, default=300, help="steps of the hung runs")
+    parser.add_argument("--team-steps", type=int, default=300, help="steps of the team runs")
+    parser.add_argument("--team-robots", type=int, default=4, help="robots of the team run")
     args = parser.parse_args(argv)
     print(f"world {args.world}, {args.steps} steps, median of {args.repeat}", flush=True)
     with tempfile.TemporaryDirectory() as scratch:
@@ -165,6 +170,8 @@ def main(argv: list[str] | None = None) -> int:
             bench_pool(args, ups)
         if "hung" in parts:
             bench_hung_worker(args, ups)
+        if "team" in parts:
+            bench_team(args, ups)
     return 0
 
 
@@ -213,6 +220,22 @@ def bench_hung_worker(args: argparse.Namespace, ups) -> None:
     line("queries that waited out the timeout (hung run)", timeouts, "", 1)
     line("re-plans without g1 (degraded) in the hung run", degraded, "")
     line("  if each of those had waited the timeout (no benching)", degraded * timeout_s, "s")
+
+
+def bench_team(args: argparse.Namespace, ups) -> None:
+    """Item 5: per-step wall time of a team run against a single robot's."""
+    steps, robots = args.team_steps, args.team_robots
+    single = ups("single", "mapex", steps=steps)
+    team = ups("team", "mapex_team", "--robots", str(robots), steps=steps)
+    per_step = lambda runs: statistics.median(  # noqa: E731
+        max(record["wall_time_s"] for record in run["runs"]) / steps for run in runs
+    )
+    line(f"single-robot mapex, wall time per step ({steps} steps)", per_step(single) * 1e3, "ms")
+    line(f"{robots}-robot mapex_team, wall time per team step", per_step(team) * 1e3, "ms")
+    line("ratio team / single", per_step(team) / per_step(single), "x", 2.0)
+    coverage = lambda runs: statistics.median(run["runs"][0]["auc"]["coverage"] for run in runs)  # noqa: E731
+    line("coverage AUC, single robot", coverage(single), "")
+    line(f"coverage AUC, team of {robots}", coverage(team), "")
 
 
 def _median(runs: list[dict], key: str) -> float:

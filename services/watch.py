@@ -10,8 +10,10 @@ answers with its latest frame), so a watch started mid-run shows the current sta
 keys that have not answered yet are asked again every `WatchConfig.get_timeout_s`. At most
 every `--every-s` seconds, if something new arrived, it renders the observed map (pose, path,
 frontiers and goal on top), the prediction mean and the variance into the PNG (written
-atomically). With `--gif` the frames are kept (downscaled, at most `WatchConfig.max_gif_frames`)
-and written as an animated GIF on exit. It exits 0 on SIGINT/SIGTERM, with `--until-finished`
+atomically). The other robots of the run (a team) are drawn too: each one's pose, goal
+and path in a colour of its own, from their `pose`, `goal` and `path` keys. With `--gif`
+the frames are kept (downscaled, at most `WatchConfig.max_gif_frames`) and written as an
+animated GIF on exit. It exits 0 on SIGINT/SIGTERM, with `--until-finished`
 when the status says finished or failed, and at `--timeout-s` (exit 1 if `--until-finished`
 was asked and the run had not finished). Malformed payloads are logged and dropped.
 Bad flags: one line, exit 2. The drawing itself (no Zenoh) is in `services.watch_render`.
@@ -35,7 +37,15 @@ import zenoh
 from mapex.exit_codes import EXIT_USAGE
 from services.codec import Payload, ProtocolError
 from services.config import WatchConfig
-from services.keys import ID_MAX_CHARS, RESERVED_RUN_IDS, is_valid_id, robot_key
+from services.keys import (
+    ID_MAX_CHARS,
+    RESERVED_RUN_IDS,
+    RobotKey,
+    is_valid_id,
+    parse_key,
+    robot_key,
+    robot_key_pattern,
+)
 from services.messages import (
     FrontiersMessage,
     GoalMessage,
@@ -71,6 +81,7 @@ WATCHED_TOPICS: dict[str, tuple[type[Message], str]] = {
     "status": (StatusMessage, "status"),
     "metrics": (MetricsMessage, "metrics"),
 }
+TEAMMATE_TOPICS = ("pose", "goal", "path")  # what the watch draws of the other robots
 MAP_KINDS_BY_TOPIC = {
     "observed_map": "observed",
     "prediction/mean": "mean",
@@ -101,6 +112,12 @@ class WatchState:
     status: StatusMessage | None = None
     metrics: MetricsMessage | None = None
     received: dict[str, int] = field(default_factory=dict)  # messages applied, by topic
+    teammates: dict[str, dict[str, Message]] = field(default_factory=dict)  # robot -> topic ->
+    # its latest pose, goal and path (the other robots of a team run)
+
+    def apply_teammate(self, robot: str, topic: str, message: Message) -> None:
+        """Make `message` the latest `topic` (pose, goal or path) of teammate `robot`."""
+        self.teammates.setdefault(robot, {})[topic] = message
 
     def apply(self, topic: str, message: Message) -> None:
         """Make `message` (decoded by `decode_topic`) the latest of `topic`."""
@@ -143,6 +160,18 @@ def apply_payloads(
         if message is not None:
             state.apply(topic, message)
             applied = True
+    return applied
+
+
+def apply_teammates(state: WatchState, payloads: dict[tuple[str, str], bytes]) -> bool:
+    """Apply each teammate's newest pose, goal and path; log and drop malformed ones."""
+    applied = False
+    for (robot, topic), payload in sorted(payloads.items()):
+        try:
+            state.apply_teammate(robot, topic, decode_topic(topic, payload))
+            applied = True
+        except ProtocolError as error:
+            log.warning("dropped a malformed message of %s on %s: %s", robot, topic, error)
     return applied
 
 
@@ -234,16 +263,23 @@ class Inbox:
 
 
 class Watcher:
-    """Subscribers on one robot's watched keys feeding an `Inbox`, and late-joiner queries."""
+    """Subscribers on one robot's watched keys feeding an `Inbox`, and late-joiner queries;
+    subscribers on every robot's pose, goal and path for the teammates."""
 
     def __init__(self, session: zenoh.Session, run: str, robot: str, config: WatchConfig) -> None:
-        self.session, self.config = session, config
+        self.session, self.config, self.robot = session, config, robot
         self.keys = {topic: robot_key(run, robot, topic) for topic in WATCHED_TOPICS}
         self.inbox = Inbox(config.inbox_depth)
+        self._teammates: dict[tuple[str, str], bytes] = {}  # (robot, topic) -> newest payload
+        self._teammates_lock = threading.Lock()
         # subscribe first, then ask: nothing put in between is missed
         self.subscribers = [
             session.declare_subscriber(key, self._on_sample(topic))
             for topic, key in self.keys.items()
+        ]
+        self.subscribers += [
+            session.declare_subscriber(robot_key_pattern(topic, run), self._on_teammate)
+            for topic in TEAMMATE_TOPICS
         ]
         self._next_ask_s = 0.0
         self.ask_unheard(time.monotonic())
@@ -262,6 +298,22 @@ class Watcher:
         """Undeclare the subscribers (replies still in flight are dropped with the session)."""
         for subscriber in self.subscribers:
             subscriber.undeclare()
+
+    def drain_teammates(self) -> dict[tuple[str, str], bytes]:
+        """The newest payload of each (teammate, topic) since the last drain."""
+        with self._teammates_lock:
+            pending, self._teammates = self._teammates, {}
+        return pending
+
+    def _on_teammate(self, sample: zenoh.Sample) -> None:
+        try:
+            key = parse_key(str(sample.key_expr))
+        except ProtocolError as error:
+            log.warning("dropped a teammate message: %s", error)
+            return
+        if isinstance(key, RobotKey) and key.robot != self.robot:
+            with self._teammates_lock:
+                self._teammates[key.robot, key.topic] = sample.payload.to_bytes()
 
     def _on_sample(self, topic: str):
         return lambda sample: self.inbox.deliver(topic, sample.payload.to_bytes())
@@ -340,6 +392,7 @@ def _loop(
     next_render_s, dirty = time.monotonic(), False
     while True:
         dirty |= apply_payloads(state, watcher.inbox.drain(), watcher.keys)
+        dirty |= apply_teammates(state, watcher.drain_teammates())
         now_s = time.monotonic()
         ended = _ended(stop, state, until_finished, deadline_s, now_s)
         if ended is not None:

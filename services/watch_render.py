@@ -23,6 +23,7 @@ from services.messages import (
     FrontiersMessage,
     GoalMessage,
     MapMessage,
+    Message,
     MetricsMessage,
     PathMessage,
     PoseMessage,
@@ -34,6 +35,7 @@ WIDE_ASPECT = 1.5  # layout, not tunables: maps wider than this stack their pane
 WIDE_PANEL_SCALE = 2.0  # stacked panels of wide maps get twice the width
 PANEL_TITLE_INCHES = 0.3
 TITLE_INCHES = 0.6
+TEAMMATE_COLOURS = ("tab:purple", "tab:green", "tab:brown", "tab:pink", "tab:olive")
 
 
 class WatchView(Protocol):
@@ -50,6 +52,7 @@ class WatchView(Protocol):
     path: PathMessage | None
     status: StatusMessage | None
     metrics: MetricsMessage | None
+    teammates: dict[str, dict[str, Message]]  # robot -> "pose" / "goal" / "path" -> message
 
     @property
     def t(self) -> int | None:
@@ -118,9 +121,22 @@ def _draw_observed(ax: Axes, state: WatchView) -> None:
         ax.plot(state.goal.goal[1], state.goal.goal[0], "*", color="tab:orange", markersize=10)
     if state.pose is not None:
         ax.plot(state.pose.pose[1], state.pose.pose[0], "o", color="tab:blue", markersize=6)
+    for index, (_, messages) in enumerate(sorted(state.teammates.items())):
+        _draw_teammate(ax, messages, TEAMMATE_COLOURS[index % len(TEAMMATE_COLOURS)])
     rows, cols = state.observed.map_u8.shape
     ax.set_xlim(-0.5, cols - 0.5)  # overlays never rescale the map
     ax.set_ylim(rows - 0.5, -0.5)
+
+
+def _draw_teammate(ax: Axes, messages: dict[str, Message], colour: str) -> None:
+    """Another robot of the team: its path, goal and pose in `colour`."""
+    path, goal, pose = messages.get("path"), messages.get("goal"), messages.get("pose")
+    if path is not None and len(path.cells):
+        ax.plot(path.cells[:, 1], path.cells[:, 0], color=colour, linewidth=1.0)
+    if goal is not None and goal.goal is not None:
+        ax.plot(goal.goal[1], goal.goal[0], "*", color=colour, markersize=9)
+    if pose is not None:
+        ax.plot(pose.pose[1], pose.pose[0], "o", color=colour, markersize=5)
 
 
 def _draw_map(ax: Axes, message, name: str, to_image, cmap: str, vmax: float | None) -> None:

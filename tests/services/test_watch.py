@@ -38,12 +38,14 @@ from services.watch import (
     Inbox,
     WatchState,
     apply_payloads,
+    apply_teammates,
     decode_topic,
     run_cli,
 )
 from services.watch_render import FrameReel, render_frame, write_atomic
 
 SHAPE = (40, 50)
+PURPLE_RGB = (148, 103, 189)  # matplotlib's tab:purple, the first teammate's colour
 POSE_RGB = (31, 119, 180)  # tab:blue, the pose marker
 START_DEADLINE_S = 60.0  # imports (matplotlib, zenoh) on a shared 2-core machine
 EXIT_DEADLINE_S = 15.0
@@ -96,6 +98,21 @@ def test_render_frame_draws_the_maps_and_the_overlays():
     assert with_overlays.shape == without.shape == walls.shape
     assert _has_colour(with_overlays, POSE_RGB) and not _has_colour(without, POSE_RGB)
     assert walls.mean() < with_overlays.mean() - 20  # black walls instead of white free space
+
+
+def test_teammates_are_drawn_in_their_own_colour_and_malformed_ones_dropped(caplog):
+    state = _state(_frames(3))
+    alone = _pixels(render_frame(state, SMALL))
+    payloads = {
+        ("r1", "pose"): PoseMessage(3, (30, 40)).encode(),
+        ("r1", "path"): PathMessage(3, np.array([[30, 40], [35, 45]])).encode(),
+        ("r1", "goal"): b"\x00junk",
+    }
+    assert apply_teammates(state, payloads)
+    assert set(state.teammates["r1"]) == {"pose", "path"}
+    assert "dropped a malformed message of r1 on goal" in caplog.text
+    team = _pixels(render_frame(state, SMALL))
+    assert _has_colour(team, PURPLE_RGB) and not _has_colour(alone, PURPLE_RGB)
 
 
 def test_render_frame_copes_with_nothing_but_a_status():
