@@ -180,7 +180,7 @@ def run_problem(episode: Episode, folder: Path, config: dict | None = None) -> s
     except (ReportError, OSError, ValueError, KeyError, TypeError) as error:
         return f"unreadable ({' '.join(str(error).split())})"
     wanted = (episode.world_name, episode.method, start_label(episode.start), episode.seed)
-    found = (record.world, record.method, record.start, record.seed)
+    found = (record.world, record.metrics["method"], record.start, record.seed)
     if found != wanted:
         return f"it holds {'/'.join(map(str, found))}, not {'/'.join(map(str, wanted))}"
     if len(record.steps) == 0:

@@ -53,7 +53,11 @@ class RunRecord:
 
     @property
     def method(self) -> str:
-        return str(self.metrics["method"])
+        """The method as the report groups runs: a team's size is part of it
+        (`mapex_team x2`), so teams of 2 and of 4 are compared, not pooled."""
+        team = self.metrics.get("team")
+        name = str(self.metrics["method"])
+        return f"{name} x{team['robots']}" if team else name
 
     @property
     def world(self) -> str:

@@ -267,6 +267,18 @@ def test_a_report_failing_on_a_full_disk_leaves_the_old_files_whole(results, tmp
     assert is_png(files.figures[0]) and json.loads(files.json.read_text())
 
 
+def test_teams_of_different_sizes_are_rows_of_their_own(tmp_path):
+    for robots, cov in ((2, 0.6), (4, 0.8)):
+        folder = write_run(tmp_path / "r", "generated:1", "mapex_team", cov=cov)
+        metrics = json.loads((folder / "metrics.json").read_text())
+        metrics["team"] = {"robots": robots}
+        (folder / "metrics.json").write_text(json.dumps(metrics))
+        folder.rename(folder.with_name(f"{folder.name}-team{robots}"))
+    write_run(tmp_path / "r", "generated:1", "mapex", cov=0.5)
+    table = auc_table(load_runs(tmp_path / "r"), ["mapex"])
+    assert [row.method for row in table.rows] == ["mapex", "mapex_team x2", "mapex_team x4"]
+
+
 def test_mixed_budgets_are_flagged(tmp_path):
     write_run(tmp_path / "r", "w", "mapex", 0, steps=200)
     write_run(tmp_path / "r", "w", "nearest", 0, steps=100)
