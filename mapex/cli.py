@@ -15,11 +15,10 @@ from mapex.config import (
     apply_overrides,
 )
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
-from mapex.methods import METHODS
 from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
 from mapex.prediction.config import add_precision_argument
 from mapex.prediction.weights import WeightsError
-from mapex.team.methods import TEAM_METHODS, check_team_flags
+from mapex.team.methods import ALL_METHODS, check_team_flags
 from mapex.worlds import DEFAULT_WORLD, WorldError, load_world, start_label
 from mapex.worlds.starts import add_start_argument, start_cell
 
@@ -46,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--method",
         default="mapex",
-        choices=sorted(METHODS) + sorted(TEAM_METHODS),
+        choices=ALL_METHODS,
         help="default: %(default)s; with --robots > 1 a team method (mapex_team, "
         "mapex_plus_team, nearest_team, mapex_independent)",
     )

@@ -49,10 +49,10 @@ from mapex.config import (
     argparse_type,
 )
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
-from mapex.methods import ABLATIONS, MAIN_COMPARISON, METHODS, parse_method_list
+from mapex.methods import ABLATIONS, MAIN_COMPARISON, parse_method_list
 from mapex.report.runs import ReportError, load_run
 from mapex.results import METRICS_FILE, check_output_folder, episode_name, move_into_place
-from mapex.team.methods import TEAM_METHODS, check_team_flags
+from mapex.team.methods import ALL_METHODS, TEAM_METHODS, check_team_flags
 from mapex.worlds import StartSpec, WorldError, load_world
 from mapex.worlds.starts import start_argument, start_cell, start_label
 from services.codec import DEFAULT_SERVICES
@@ -387,7 +387,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--methods",
-        type=argparse_type(lambda text: parse_method_list(text, [*METHODS, *TEAM_METHODS])),
+        type=argparse_type(lambda text: parse_method_list(text, ALL_METHODS)),
         default=list(MAIN_COMPARISON),
         help="comma-separated (default: "
         + ",".join(MAIN_COMPARISON)

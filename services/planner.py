@@ -41,11 +41,10 @@ from mapex.config import (
 )
 from mapex.episode import EpisodeResult, run_episode
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
-from mapex.methods import METHODS
 from mapex.prediction.base import MEMBER_NAMES
 from mapex.results import OutputError, check_destination, describe_end, destination, write_results
 from mapex.team.episode import run_team_episode
-from mapex.team.methods import TEAM_METHODS, check_team_flags
+from mapex.team.methods import ALL_METHODS, TEAM_METHODS, check_team_flags
 from mapex.worlds import StartSpec, World, WorldError, load_world, start_label
 from mapex.worlds.starts import add_start_argument, start_cell, start_spec_of
 from services.codec import DEFAULT_SERVICES
@@ -255,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--run", required=True, help="run id, the <run> chunk of the keys")
     parser.add_argument("--robot", type=int, default=0, help="robot index in the run (default 0)")
-    parser.add_argument("--method", default="mapex", choices=sorted(METHODS) + sorted(TEAM_METHODS))
+    parser.add_argument("--method", default="mapex", choices=ALL_METHODS)
     parser.add_argument(
         "--robots",
         type=int,

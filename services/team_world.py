@@ -25,7 +25,7 @@ import zenoh
 from mapex.config import ExplorationConfig
 from mapex.simulator import MotionError
 from mapex.worlds import StartSpec, World
-from services.codec import DEFAULT_SERVICES, Payload, ProtocolError
+from services.codec import DEFAULT_SERVICES, ProtocolError
 from services.config import ServicesConfig
 from services.keys import (
     ROBOT_ID_PREFIX,
@@ -97,19 +97,11 @@ class TeamWorldServer(WorldServer):
         if gone and robot is not None and 0 <= robot < self.n_robots:
             self.planner_gone(robot)
 
-    def answer_step(self, robot: int, payload: Payload | None) -> TeamScanReply | ErrorReply:
-        """The team reply for a valid request of robot `robot`, once its step is served."""
-        try:
-            if not 0 <= robot < self.n_robots:
-                raise ProtocolError(f"robot {robot} is not one of 0-{self.n_robots - 1}")
-            if payload is None:
-                raise ProtocolError("the query carries no payload")
-            request = TeamStepRequest.decode(payload)
-        except ProtocolError as error:
-            log.warning("refused a malformed team step request: %s", error)
-            return ErrorReply(f"malformed team step request: {error}")
-        if not self._authorised(request):
-            return self._refuse(robot, f"step seq {request.seq} without this run's token")
+    request_type = TeamStepRequest
+    request_name = "team step request"
+
+    def _answer(self, robot: int, request: TeamStepRequest) -> TeamScanReply | ErrorReply:
+        """The team reply for robot `robot`'s request, once its step is served."""
         with self._clock:
             return self._wait_for_step(robot, request)
 
@@ -140,12 +132,10 @@ class TeamWorldServer(WorldServer):
             names = ", ".join(robot_id(robot) for robot in slow)
             log.warning("step %d: no request from %s in time: standing still", seq, names)
         finished = seq > 0 and not slow and all(r.done for r in requests.values())
-        replies = []
+        scans = []
         if not finished:
-            replies = [
-                self._move(robot, seq, requests.get(robot)) for robot in range(self.n_robots)
-            ]
-        self._replies[seq] = self._team_reply(seq, finished, replies, requests, late)
+            scans = [self._move(robot, seq, requests.get(robot)) for robot in range(self.n_robots)]
+        self._replies[seq] = self._team_reply(seq, finished, scans, requests, late)
         while len(self._replies) > KEPT_REPLIES:
             self._replies.popitem(last=False)
         self.seq, self._requests, self._first_arrival = seq + 1, {}, None

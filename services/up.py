@@ -39,9 +39,8 @@ from mapex.config import (
     apply_overrides,
 )
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
-from mapex.methods import METHODS
 from mapex.results import DEFAULT_RESULTS_DIR, check_output_folder
-from mapex.team.methods import TEAM_METHODS
+from mapex.team.methods import ALL_METHODS, TEAM_METHODS
 from mapex.team.starts import team_start_cells
 from mapex.worlds import DEFAULT_SPEC, StartSpec, World, WorldError, load_world
 from mapex.worlds.starts import add_start_argument, start_argument, start_cell
@@ -262,7 +261,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--method",
         default="mapex",
-        choices=sorted(METHODS) + sorted(TEAM_METHODS),
+        choices=ALL_METHODS,
         help="a team method (mapex_team, ...) makes the --robots of a world one team sharing "
         "a map, deployed about 1 m apart around the start",
     )

@@ -52,9 +52,11 @@ from services.keys import (
 from services.messages import (
     ErrorReply,
     GroundTruth,
+    Message,
     PoseMessage,
     ScanReply,
     StepRequest,
+    TeamStepRequest,
     WorldInfo,
 )
 from services.serving import (
@@ -131,19 +133,25 @@ class WorldServer:
         """The walls and valid space of the world."""
         return GroundTruth.from_world(self.world)
 
-    def answer_step(self, robot: int, payload: Payload | None) -> ScanReply | ErrorReply:
-        """The ScanReply for a valid StepRequest payload of robot `robot`, else an ErrorReply."""
+    request_type: type[StepRequest | TeamStepRequest] = StepRequest  # what a step query holds
+    request_name = "step request"  # in refusals
+
+    def answer_step(self, robot: int, payload: Payload | None) -> Message:
+        """The reply to a valid step payload of robot `robot` (`_answer`), else an ErrorReply."""
         try:
             if not 0 <= robot < self.n_robots:
                 raise ProtocolError(f"robot {robot} is not one of 0-{self.n_robots - 1}")
             if payload is None:
                 raise ProtocolError("the query carries no payload")
-            request = StepRequest.decode(payload)
+            request = self.request_type.decode(payload)
         except ProtocolError as error:
-            log.warning("refused a malformed step request: %s", error)
-            return ErrorReply(f"malformed step request: {error}")
+            log.warning("refused a malformed %s: %s", self.request_name, error)
+            return ErrorReply(f"malformed {self.request_name}: {error}")
         if not self._authorised(request):
             return self._refuse(robot, f"step seq {request.seq} without this run's token")
+        return self._answer(robot, request)
+
+    def _answer(self, robot: int, request: StepRequest) -> ScanReply | ErrorReply:
         with self._lock:
             return self._step(robot, request)
 
@@ -170,7 +178,7 @@ class WorldServer:
         """Follow the planners' liveliness (a team world does; one robot's does not)."""
         return None
 
-    def _authorised(self, request: StepRequest) -> bool:
+    def _authorised(self, request: StepRequest | TeamStepRequest) -> bool:
         if self.run_token is None:
             return True
         return hmac.compare_digest((request.run_token or "").encode(), self.run_token.encode())

@@ -85,7 +85,12 @@ class ClaimBoard:
 
     def claimed_by_teammates(self, robot: int) -> np.ndarray:
         """bool (rows, cols): the union of the other robots' visible sets."""
-        claimed = np.zeros(self.shape, dtype=bool)
-        for claim in self.teammates_of(robot):
-            claimed |= claim.visible
-        return claimed
+        return claimed_cells(self.teammates_of(robot), self.shape)
+
+
+def claimed_cells(claims: list[Claim], shape: tuple[int, int]) -> np.ndarray:
+    """bool (rows, cols): the union of the visible sets of `claims`."""
+    claimed = np.zeros(shape, dtype=bool)
+    for claim in claims:
+        claimed |= claim.visible
+    return claimed

@@ -23,12 +23,13 @@ import numpy as np
 
 from mapex.config import ConfigError, ExplorationConfig
 from mapex.grid import OCCUPIED, UNKNOWN
+from mapex.methods import METHODS
 from mapex.methods.base import FrontierScorer, PlanningContext
 from mapex.methods.goals import Goal
 from mapex.methods.information_gain import MapEx
 from mapex.methods.nearest import NearestFrontier
 from mapex.methods.path_gain import MapExPlus
-from mapex.team.claims import Claim
+from mapex.team.claims import Claim, claimed_cells
 from mapex.visibility import visible_mask
 
 
@@ -64,9 +65,7 @@ class TeamScorer(FrontierScorer):
 
     def score(self, context: PlanningContext) -> np.ndarray:
         if self.discount_claims and self.teammates:
-            claimed = np.zeros(context.observed.shape, dtype=bool)
-            for claim in self.teammates:
-                claimed |= claim.visible
+            claimed = claimed_cells(self.teammates, context.observed.shape)
             context = replace(context, claimed=claimed)
         scores = np.asarray(self.inner.score(context), dtype=np.float64)
         if self.avoid_claimed_goals and self.teammates and len(scores):
@@ -125,6 +124,9 @@ TEAM_METHODS: dict[str, Callable[[ExplorationConfig], TeamScorer]] = {
     "nearest_team": _team(NearestFrontier, "nearest_team", avoid_claimed_goals=True),
     "mapex_independent": _team(MapEx, "mapex_independent"),
 }
+
+
+ALL_METHODS: tuple[str, ...] = (*sorted(METHODS), *sorted(TEAM_METHODS))  # --method choices
 
 
 def make_team_method(name: str, config: ExplorationConfig) -> TeamScorer:
