@@ -165,11 +165,18 @@ class TeamConfig:
     # a teammate's new claim makes a robot re-plan when it lies this close to its own goal
     # and scores better
     claim_conflict_cells: int = 20
+    # mapex_team / mapex_plus_team: also claim what the robot will see on its way, from
+    # every k-th cell of its path to the goal (0: the goal's visible set only, as specified)
+    claim_path_every_cells: int = 0
 
     def __post_init__(self) -> None:
         for name in ("spacing_cells", "goal_exclusion_cells", "claim_conflict_cells"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"team.{name} must be >= 1, got {getattr(self, name)}")
+        if self.claim_path_every_cells < 0:
+            raise ConfigError(
+                f"team.claim_path_every_cells must be >= 0, got {self.claim_path_every_cells}"
+            )
 
 
 @dataclass(frozen=True)

@@ -11,13 +11,15 @@ being written and are ignored) and produces, in `--out` (default RESULTS_DIR/rep
 * snapshots.png: observed map and G's prediction at the snapshot steps for one run per
   method, all on the same world and start (one row per method; one row per method and map
   kind for wide maps).
+* for team runs, a Teams section (overlap, path length per robot, lost robots) and
+  teams.png: each team method's merged map with every robot's trajectory (mapex.report.teams).
 
 The mean of the per-run AUCs is the aggregate of docs/algorithms.md#metrics (the AUC of the mean
 curve) when the runs share one sample grid, i.e. one time budget T; mixed budgets are flagged in
 the report.
 
 Modules: runs (loading run folders), tables (numbers, Markdown and JSON), figures (curves
-and snapshots); this one assembles the report and holds the command line.
+and snapshots), teams (the team part); this one assembles the report and holds the command line.
 """
 
 from __future__ import annotations
@@ -73,6 +75,14 @@ from mapex.report.tables import (
     render_markdown,
     report_json,
     run_counts,
+)
+from mapex.report.teams import (
+    TEAMS_FIGURE,
+    load_trajectories,
+    plot_teams,
+    team_markdown,
+    team_runs,
+    team_summary,
 )
 from mapex.results import staged_file
 
@@ -161,14 +171,22 @@ def write_report(
         warn(note)
     out_dir.mkdir(parents=True, exist_ok=True)
     markdown = out_dir / MARKDOWN_FILE
+    teams = team_summary(team_runs(runs), order)
+    text = render_markdown(table, improvements, counts, REFERENCE_METHOD, notes)
+    if teams:
+        text += "\n" + team_markdown(teams) + "\n"
     with staged_file(markdown) as partial:
-        partial.write_text(render_markdown(table, improvements, counts, REFERENCE_METHOD, notes))
+        partial.write_text(text)
     data = report_json(table, improvements, counts, REFERENCE_METHOD, notes)
     figures = _write_curves(runs, table, out_dir, config)
     snapshots = _write_snapshots(runs, out_dir, config, snapshot_pick, warn)
     if snapshots is not None:
         figures.append(out_dir / SNAPSHOTS_FIGURE)
         data.update(snapshots)
+    if teams:
+        data["teams"] = teams
+        data["team_snapshot_runs"] = _write_teams(team_runs(runs), out_dir, config, warn)
+        figures.append(out_dir / TEAMS_FIGURE)
     path_json = out_dir / JSON_FILE
     with staged_file(path_json) as partial:
         partial.write_text(json.dumps(data, indent=2) + "\n")
@@ -211,6 +229,22 @@ def _write_snapshots(
     with staged_file(out_dir / SNAPSHOTS_FIGURE) as partial:
         steps = plot_snapshots(partial, pairs, config)
     return {"snapshot_steps": list(steps), "snapshot_runs": [r.name for r in chosen]}
+
+
+def _write_teams(
+    runs: Sequence[RunRecord], out_dir: Path, config: ReportConfig, warn: Warn
+) -> list[str]:
+    """teams.png of one team run per team method, on one world and start; returns their
+    names."""
+    chosen = choose_snapshot_runs(runs, config.method_order, None, warn) or [runs[0]]
+    panels = []
+    for run in chosen:
+        snaps = load_snapshots_or_warn(run, warn)
+        last = int(snaps.steps[-1]) if snaps is not None and len(snaps.steps) else 0
+        panels.append((run, snaps, load_trajectories(run, last)))
+    with staged_file(out_dir / TEAMS_FIGURE) as partial:
+        plot_teams(partial, panels, config, warn)
+    return [r.name for r in chosen]
 
 
 # ---------------------------------------------------------------- command line

@@ -22,13 +22,14 @@ from dataclasses import replace
 import numpy as np
 
 from mapex.config import ConfigError, ExplorationConfig
-from mapex.grid import OCCUPIED, UNKNOWN
+from mapex.grid import OCCUPIED, UNKNOWN, Cell
 from mapex.methods import METHODS
 from mapex.methods.base import FrontierScorer, PlanningContext
 from mapex.methods.goals import Goal
 from mapex.methods.information_gain import MapEx
 from mapex.methods.nearest import NearestFrontier
 from mapex.methods.path_gain import MapExPlus
+from mapex.navigation import plan_path
 from mapex.team.claims import Claim, claimed_cells
 from mapex.visibility import visible_mask
 
@@ -89,7 +90,7 @@ class TeamScorer(FrontierScorer):
         cell = (int(goal.cell[0]), int(goal.cell[1]))
         visible = np.zeros(context.observed.shape, dtype=bool)
         if self.discount_claims:
-            visible = self._visible_set(context, goal.frontier)
+            visible = self._visible_set(context, self._claimed_viewpoints(context, goal))
         return Claim(robot, t, cell, score, visible)
 
     def _near_claimed_goals(self, frontiers: np.ndarray) -> np.ndarray:
@@ -98,8 +99,21 @@ class TeamScorer(FrontierScorer):
         nearest = np.hypot(offsets[..., 0], offsets[..., 1]).min(axis=1)
         return nearest < self.config.team.goal_exclusion_cells
 
-    def _visible_set(self, context: PlanningContext, frontier: np.ndarray) -> np.ndarray:
-        """The unknown cells MapEx's rays from `frontier` reach (on M_t, or on the observed
+    def _claimed_viewpoints(self, context: PlanningContext, goal: Goal) -> list[Cell]:
+        """The goal's frontier point, and with `team.claim_path_every_cells` = k > 0 every
+        k-th cell of the path there (the robot scans on its way, so teammates should not
+        count those cells either)."""
+        points: list[Cell] = [(int(goal.frontier[0]), int(goal.frontier[1]))]
+        every = self.config.team.claim_path_every_cells
+        if every > 0:
+            pose = (int(context.pose[0]), int(context.pose[1]))
+            path = plan_path(context.observed, context.cost, pose, goal.cell)
+            if path is not None:
+                points += [(int(r), int(c)) for r, c in path[every::every]]
+        return points
+
+    def _visible_set(self, context: PlanningContext, points: list[Cell]) -> np.ndarray:
+        """The unknown cells MapEx's rays from `points` reach (on M_t, or on the observed
         map's walls without a prediction)."""
         cfg = context.config.visibility
         if context.prediction is not None:
@@ -107,8 +121,9 @@ class TeamScorer(FrontierScorer):
         else:
             opacity = (context.observed == OCCUPIED).astype(np.float32)
             rule, epsilon = "threshold", 0.5
-        point = (int(frontier[0]), int(frontier[1]))
-        seen = visible_mask(opacity, point, cfg.n_rays, cfg.range_cells, rule, epsilon)
+        seen = np.zeros(context.observed.shape, dtype=bool)
+        for point in points:
+            seen |= visible_mask(opacity, point, cfg.n_rays, cfg.range_cells, rule, epsilon)
         return seen & (context.observed == UNKNOWN)
 
 

@@ -16,6 +16,7 @@ from mapex.report import (
     choose_snapshot_runs,
     load_runs,
     load_snapshots,
+    load_trajectories,
     main,
     mean_curve,
     missing_runs,
@@ -277,6 +278,48 @@ def test_teams_of_different_sizes_are_rows_of_their_own(tmp_path):
     write_run(tmp_path / "r", "generated:1", "mapex", cov=0.5)
     table = auc_table(load_runs(tmp_path / "r"), ["mapex"])
     assert [row.method for row in table.rows] == ["mapex", "mapex_team x2", "mapex_team x4"]
+
+
+def write_team_run(root, method, robots, overlap, start=0):
+    """A team run: write_run's folder with the team entry and every robot's trajectory
+    (robot k walks along row 3 + k, one cell per step, for 200 steps)."""
+    folder = write_run(root, "generated:1", method, start=start)
+    metrics = json.loads((folder / "metrics.json").read_text())
+    metrics["team"] = {
+        "robots": robots, "overlap": overlap, "path_length_m": [20.0 + k for k in range(robots)],
+        "lost_at": {"1": 120} if robots > 2 else {},
+    }  # fmt: skip
+    (folder / "metrics.json").write_text(json.dumps(metrics))
+    rows = [f"{t},{k},{3 + k},{min(t, SHAPE[1] - 1)}" for t in range(201) for k in range(robots)]
+    (folder / "trajectories.csv").write_text("step,robot,row,col\n" + "\n".join(rows) + "\n")
+    return folder.rename(folder.with_name(f"{folder.name}-team{robots}"))
+
+
+def test_team_runs_get_a_team_table_and_a_figure_of_every_robots_path(tmp_path):
+    root = tmp_path / "r"
+    write_run(root, "generated:1", "mapex")
+    write_team_run(root, "mapex_team", 2, 0.6)
+    write_team_run(root, "mapex_team", 2, 0.8, start=1)
+    write_team_run(root, "mapex_independent", 2, 0.9)
+    write_team_run(root, "mapex_team", 4, 0.7)
+    runs = load_runs(root)
+    files, _ = write_report(runs, tmp_path / "out")
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "| mapex_team x2 | 2 | 0.700 ± 0.100 | 20 |" in report
+    assert "| mapex_team x4 | 1 | 0.700 | 22 | 1 |" in report  # one run with a lost robot
+    data = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert data["teams"]["mapex_independent x2"]["overlap"]["mean"] == 0.9
+    assert len(data["team_snapshot_runs"]) == 3  # one run per team method, on one start
+    assert is_png(tmp_path / "out" / "teams.png") and tmp_path / "out" / "teams.png" in files.figures
+    team = next(r for r in runs if r.method == "mapex_team x4")
+    paths = load_trajectories(team, until_step=100)
+    assert len(paths) == 4 and paths[3].shape == (101, 2) and tuple(paths[3][-1]) == (6, 17)
+
+
+def test_single_robot_reports_have_no_team_part(results, tmp_path):
+    write_report(load_runs(results), tmp_path / "out")
+    assert "## Teams" not in (tmp_path / "out" / "report.md").read_text()
+    assert not (tmp_path / "out" / "teams.png").exists()
 
 
 def test_mixed_budgets_are_flagged(tmp_path):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -10,6 +12,7 @@ from mapex.episode import run_episode
 from mapex.grid import FREE, UNKNOWN
 from mapex.methods.base import PlanningContext
 from mapex.prediction import make_predictor
+from mapex.prediction.base import EnsemblePrediction
 from mapex.team.claims import Claim, ClaimBoard
 from mapex.team.episode import run_team_episode
 from mapex.team.methods import TEAM_METHODS, make_team_method
@@ -90,7 +93,24 @@ def test_nearest_team_keeps_away_from_a_teammates_goal():
     assert claim.goal == tuple(other.cell) and claim.t == 5 and not claim.visible.any()
 
 
-def test_mapex_independent_claims_nothing():
+@pytest.mark.parametrize("every", [0, 4])
+def test_mapex_team_claims_the_goals_visible_set_and_with_path_claims_the_way_there(every):
+    config = replace(
+        CONFIG,
+        visibility=replace(CONFIG.visibility, range_cells=6),
+        team=TeamConfig(claim_path_every_cells=every),
+    )
+    context = _context(config)
+    members = np.zeros((4, *context.observed.shape), np.float32)
+    members[1, :, 35:] = 0.1  # the members disagree right of col 35 only: goal (10, 40)
+    method = make_team_method("mapex_team", config)
+    goal = method.select_goal(replace(context, prediction=EnsemblePrediction(members)))
+    visible = method.claim_of(0, 3).visible
+    assert tuple(goal.frontier) == (10, 40)
+    assert visible[4, 40] and not visible[8:13, :41].any()  # unknown cells only
+    assert not visible[:, :25].any()  # nothing on the far side
+    assert visible[4, 34] == (every > 0)  # seen from (10, 34) on the way, out of the goal's range
+
     method = make_team_method("mapex_independent", CONFIG)
     assert not method.claims and method.claim_of(0, 0) is None
 
