@@ -71,6 +71,14 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--out", type=Path, default=None, help="results folder; default: results/<run name>"
     )
+    run.add_argument(
+        "--record",
+        type=Path,
+        default=None,
+        metavar="FILE.mcap",
+        help="also write a rosbag2-compatible MCAP of the run (ROS 2 and Foxglove topics, "
+        "for Foxglove, Lichtblick and `ros2 bag play`; needs the ros extra)",
+    )
     add_override_argument(run)
     run.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return parser
@@ -83,6 +91,23 @@ def predictor_options(args: argparse.Namespace) -> dict:
     if args.precision != "float32":
         raise ConfigError(f"--precision {args.precision}: only the 'lama' predictor has one")
     return {}
+
+
+def _open_recording(path: Path | None, world, method: str):
+    """The run's MCAP recording, or None without --record (ConfigError, one line, when the
+    ros extra is missing or the file cannot be written)."""
+    if path is None:
+        return None
+    from mapex.interop.episode_recording import EpisodeRecording
+    from mapex.interop.mcap_file import record_path_problem
+    from mapex.interop.ros_messages import MissingExtraError
+
+    if (problem := record_path_problem(path)) is not None:
+        raise ConfigError(f"--record {problem}")
+    try:
+        return EpisodeRecording(path, f"{world.name}_{method}", world.shape, world.resolution_m)
+    except (MissingExtraError, OSError) as error:
+        raise ConfigError(f"--record: {error}") from None
 
 
 def run_command(args: argparse.Namespace) -> int:
@@ -106,6 +131,7 @@ def run_command(args: argparse.Namespace) -> int:
     if team:
         team_start_cells(world, [args.start], args.robots, config)
     check_destination(args.out)
+    recording = _open_recording(args.record, world, args.method)
     predictor = make_predictor(args.predictor, **predictor_options(args))
     with tqdm(
         total=config.steps,
@@ -114,16 +140,26 @@ def run_command(args: argparse.Namespace) -> int:
         disable=args.no_progress,
         file=sys.stderr,
     ) as bar:
-        progress = lambda t, *_: bar.update(t - bar.n)  # noqa: E731
-        if team:
-            result = run_team_episode(
-                world, args.method, predictor, args.robots, [args.start], args.seed, config,
-                on_step=progress,
-            )  # fmt: skip
-        else:
-            result = run_episode(
-                world, args.method, predictor, args.start, args.seed, config, on_step=progress
-            )
+
+        def progress(t: int, explorers, _recorder) -> None:
+            bar.update(t - bar.n)
+            if recording is not None:
+                recording.step(t, explorers if team else [explorers])
+
+        try:
+            if team:
+                result = run_team_episode(
+                    world, args.method, predictor, args.robots, [args.start], args.seed, config,
+                    on_step=progress,
+                )  # fmt: skip
+            else:
+                result = run_episode(
+                    world, args.method, predictor, args.start, args.seed, config,
+                    on_step=progress,
+                )  # fmt: skip
+        finally:
+            if recording is not None:
+                print(f"recorded {recording.close()} messages -> {args.record}", file=sys.stderr)
     out_dir = destination(args.out, result)
     try:
         write_results(result, world, out_dir)

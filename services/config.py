@@ -60,3 +60,16 @@ class WatchConfig:
     max_gif_frames: int = 300  # at the cap every other frame is dropped (memory stays bounded)
     gif_max_side_px: int = 480  # GIF frames are downscaled to fit this square
     gif_frame_ms: int = 200
+
+
+@dataclass(frozen=True)
+class Ros2Config:
+    """The ROS 2 bridge `services.ros2` (rmw_zenoh conventions: mapex.interop.rmw_zenoh)."""
+
+    domain_id: int = 0  # ROS_DOMAIN_ID of the ROS 2 graph the topics appear in
+    node_name: str = "mapex_bridge"  # what `ros2 node list` shows
+    latched_depth: int = 1  # maps: transient local, the last one kept for late subscribers
+    volatile_depth: int = 10  # pose and paths
+    heartbeat_s: float = 0.5  # sample-miss heartbeat of reliable latched topics (as rmw_zenoh)
+    max_runs: int = 8  # the topics of older runs are withdrawn (their tokens undeclared)
+    default_resolution_m: float = 0.1  # cell size until a run's world_info arrives

@@ -60,6 +60,12 @@ from services.config import ServicesConfig
 from services.health import PoolWatch
 from services.keys import ID_MAX_CHARS
 from services.messages import MetricsMessage
+from services.outside_tools import (
+    OutsideTools,
+    add_outside_tool_arguments,
+    bridge_spec,
+    check_outside_tool_arguments,
+)
 from services.pool import RunProgress, add_pool_arguments, hub_session_config, worker_specs
 from services.serving import configure_logging, stop_on_signals
 from services.supervisor import ProcessSpec, Supervisor
@@ -308,6 +314,7 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
         args.maps, methods, starts, args.seeds, exploration.world, robots=args.robots
     )
     check_output_folder(args.out)
+    check_outside_tool_arguments(args)
     if remove_staging(args.out):
         log.info("removed half-written runs of an interrupted evaluation")
     config = json.loads(json.dumps(asdict(replace(exploration, steps=args.steps))))
@@ -328,12 +335,16 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
         id_prefix=f"ev{os.getpid()}",
     )
     watch = PoolWatch(session, supervisor, workers, services)
+    tools = None
     try:
+        tools = OutsideTools(session, args)
         if todo:
-            for spec in workers:
+            for spec in bridge_spec(args, flags) + workers:
                 supervisor.start(spec)
         done, failures = run_episodes(supervisor, todo, args, flags, progress, stop, watch)
     finally:
+        if tools is not None:
+            tools.close()
         supervisor.stop()
         progress.close()
         session.close()
@@ -419,6 +430,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_pool_arguments(parser)
     parser.add_argument("--no-report", action="store_true", help="skip the report at the end")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    add_outside_tool_arguments(parser)
     add_zenoh_arguments(parser, HUB_HELP)
     return parser
 

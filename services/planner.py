@@ -118,7 +118,8 @@ def explore(
     robots = (local.robots if local is not None else len(team_starts)) if team else 1
     here = [robot] if team and local is None else list(range(robots))  # robots decided here
     publishers = [
-        RunPublisher(session, run, robot_id(k if team else robot), services) for k in here
+        RunPublisher(session, run, robot_id(k if team else robot), services, local is not None)
+        for k in here
     ]
     publisher = publishers[0]
     tokens = [

@@ -31,6 +31,7 @@ from services.messages import (
     Message,
     MetricsMessage,
     PathMessage,
+    PoseMessage,
     StatusMessage,
 )
 
@@ -50,8 +51,13 @@ class RunPublisher:
         run: str,
         robot: str,
         services: ServicesConfig = DEFAULT_SERVICES,
+        with_pose: bool = False,
     ) -> None:
-        self.keys = {topic: robot_key(run, robot, topic) for topic in PUBLISHED_TOPICS}
+        """`with_pose`: also publish the robot's pose after each step, for a planner that
+        simulates its world itself (no world process publishes it then)."""
+        topics = PUBLISHED_TOPICS + (("pose",) if with_pose else ())
+        self.with_pose = with_pose
+        self.keys = {topic: robot_key(run, robot, topic) for topic in topics}
         self.latest = LatestPublisher(
             session,
             list(self.keys.values()),
@@ -75,6 +81,8 @@ class RunPublisher:
     def step(self, t: int, explorer: Explorer, recorder: MetricRecorder) -> None:
         """Everything that changed by step `t`: the map always, the rest when it changed."""
         self._hand_over("observed_map", _Lazy(t, "observed", explorer.observed.copy()))
+        if self.with_pose:
+            self._hand_over("pose", PoseMessage(t, tuple(int(v) for v in explorer.pose)))
         self._publish_plan(t, explorer)
         self._publish_metrics(recorder.curves, degraded=bool(explorer.stats.degraded_steps))
 

@@ -49,6 +49,12 @@ from services.config import ServicesConfig
 from services.health import PoolWatch
 from services.keys import ID_MAX_CHARS, is_valid_id, robot_id
 from services.messages import PoseMessage
+from services.outside_tools import (
+    OutsideTools,
+    add_outside_tool_arguments,
+    bridge_spec,
+    check_outside_tool_arguments,
+)
 from services.pool import RunProgress, add_pool_arguments, hub_session_config, worker_specs
 from services.serving import RUN_TOKEN_ENV, configure_logging, stop_on_signals
 from services.supervisor import ProcessSpec, Supervisor, describe_exit
@@ -207,22 +213,28 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
     world = load_world(args.world).check_size(exploration.world.max_cells)
     start_cell(world, args.start, exploration.world.start_clearance_cells)
     check_output_folder(args.out or DEFAULT_RESULTS_DIR)
+    check_outside_tool_arguments(args)
     runs = plan_runs(args, world, exploration)
     own_config, zenoh_flags = hub_session_config(args, services)
     specs = child_specs(args, runs, zenoh_flags)
+    specs["tools"] = bridge_spec(args, zenoh_flags)
     stop = stop_on_signals()
     session = open_session(own_config)
     progress = RunProgress(session, "pose", PoseMessage)
     supervisor = Supervisor(services=services)
     watch = PoolWatch(session, supervisor, specs["workers"], services)
+    tools = None
     try:
-        for spec in specs["workers"] + specs["worlds"] + specs["planners"]:
+        tools = OutsideTools(session, args)
+        for spec in specs["tools"] + specs["workers"] + specs["worlds"] + specs["planners"]:
             supervisor.start(spec)
         total = args.steps * sum(len(run.starts) for run in runs)
         return supervise(
             supervisor, specs, progress, runs, total, stop, not args.no_progress, watch
         )
     finally:
+        if tools is not None:
+            tools.close([run.run_id for run in runs])
         supervisor.stop()
         progress.close()
         session.close()
@@ -277,6 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--run-prefix", default=None, help="run ids are <prefix>-<k>")
     add_override_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    add_outside_tool_arguments(parser)
     add_zenoh_arguments(parser, HUB_HELP)
     return parser
 

@@ -35,8 +35,9 @@ import numpy as np
 import zenoh
 
 from mapex.exit_codes import EXIT_USAGE
-from services.codec import Payload, ProtocolError
+from services.codec import ProtocolError
 from services.config import WatchConfig
+from services.follow import decode_topic
 from services.keys import (
     ID_MAX_CHARS,
     RESERVED_RUN_IDS,
@@ -55,7 +56,6 @@ from services.messages import (
     PathMessage,
     PoseMessage,
     StatusMessage,
-    decode_message,
 )
 from services.serving import configure_logging, stop_on_signals
 from services.watch_render import DEFAULT_WATCH, FrameReel, render_frame, write_atomic
@@ -69,7 +69,7 @@ from services.zenoh_config import (
 EXIT_NOT_FINISHED = 1  # --until-finished, but --timeout-s came first
 FINAL_STATES = ("finished", "failed")
 
-# topic -> (expected message type, WatchState field)
+# topic -> (its message type, WatchState field); decoded by services.follow.decode_topic
 WATCHED_TOPICS: dict[str, tuple[type[Message], str]] = {
     "observed_map": (MapMessage, "observed"),
     "prediction/mean": (MapMessage, "mean"),
@@ -82,12 +82,6 @@ WATCHED_TOPICS: dict[str, tuple[type[Message], str]] = {
     "metrics": (MetricsMessage, "metrics"),
 }
 TEAMMATE_TOPICS = ("pose", "goal", "path")  # what the watch draws of the other robots
-MAP_KINDS_BY_TOPIC = {
-    "observed_map": "observed",
-    "prediction/mean": "mean",
-    "prediction/variance": "variance",
-}
-
 Ended = Literal["stopped", "finished", "timeout"]
 
 log = logging.getLogger("services.watch")
@@ -137,16 +131,6 @@ class WatchState:
 
     def _messages(self) -> list[Message | None]:
         return [getattr(self, name) for _, name in WATCHED_TOPICS.values()]
-
-
-def decode_topic(topic: str, payload: Payload) -> Message:
-    """The message of a payload received on `topic`; ProtocolError when it is not the right one."""
-    expected, _ = WATCHED_TOPICS[topic]
-    message = decode_message(payload, (expected,))
-    kind = MAP_KINDS_BY_TOPIC.get(topic)
-    if kind is not None and message.kind != kind:
-        raise ProtocolError(f"a map of kind {message.kind!r} on {topic}, expected {kind!r}")
-    return message
 
 
 def apply_payloads(

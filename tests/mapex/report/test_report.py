@@ -310,7 +310,9 @@ def test_team_runs_get_a_team_table_and_a_figure_of_every_robots_path(tmp_path):
     data = json.loads((tmp_path / "out" / "report.json").read_text())
     assert data["teams"]["mapex_independent x2"]["overlap"]["mean"] == 0.9
     assert len(data["team_snapshot_runs"]) == 3  # one run per team method, on one start
-    assert is_png(tmp_path / "out" / "teams.png") and tmp_path / "out" / "teams.png" in files.figures
+    assert (
+        is_png(tmp_path / "out" / "teams.png") and tmp_path / "out" / "teams.png" in files.figures
+    )
     team = next(r for r in runs if r.method == "mapex_team x4")
     paths = load_trajectories(team, until_step=100)
     assert len(paths) == 4 and paths[3].shape == (101, 2) and tuple(paths[3][-1]) == (6, 17)

@@ -1,0 +1,1 @@
+"""Bridges to the formats of outside tools: ROS 2 messages, Foxglove schemas, MCAP."""

@@ -1,0 +1,91 @@
+"""Record an in-process episode (`python -m mapex run --record run.mcap`) as an MCAP file.
+
+The same topics as the distributed recorder (`services.record`, mapex.interop.topics),
+fed from the explorers after each step instead of from Zenoh: every robot's pose (and
+trajectory) at every step, its planned path when it changes, the ensemble mean after each
+re-plan that predicted, and the observed map every `map_every_steps` steps and at the end
+(a whole map per step would make a 1000-step file of hundreds of MB).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mapex.explorer import Explorer
+from mapex.interop.mcap_file import McapRecording
+from mapex.interop.ros_messages import MapFrame
+from mapex.interop.topics import Outgoing, RunTopics
+
+
+@dataclass(frozen=True)
+class RecordingConfig:
+    """What an in-process recording keeps."""
+
+    map_every_steps: int = 10  # observed map at t = 0, k, 2k, ... and at the last step
+
+
+class EpisodeRecording:
+    """An MCAP recording of one in-process run: call `step` after every step (a team's
+    explorers in robot order), then `close`."""
+
+    def __init__(
+        self,
+        path: Path,
+        run: str,
+        shape: tuple[int, int],
+        resolution_m: float,
+        config: RecordingConfig | None = None,
+    ) -> None:
+        self.config = config or RecordingConfig()
+        self.recording = McapRecording(path)
+        self.topics = RunTopics(run, MapFrame(*shape, resolution_m))
+        self._last_path: dict[int, bytes] = {}
+        self._last_prediction: dict[int, object] = {}
+        self._last_t = -1
+        self._explorers: Sequence[Explorer] = ()
+
+    def step(self, t: int, explorers: Sequence[Explorer]) -> None:
+        """Record the state after step `t`."""
+        stamp_ns = time.time_ns()
+        self._last_t, self._explorers = t, explorers
+        for k, explorer in enumerate(explorers):
+            robot = f"r{k}"
+            self._write(self.topics.pose(robot, tuple(explorer.pose), stamp_ns))
+            if t % self.config.map_every_steps == 0:
+                self._write(self.topics.observed(robot, explorer.observed, stamp_ns))
+            self._plan(k, robot, explorer, stamp_ns)
+            self._mean(k, robot, explorer, stamp_ns)
+
+    def close(self) -> int:
+        """Record the final observed maps (when the last step did not), finish the file and
+        return the number of messages written."""
+        stamp_ns = time.time_ns()
+        if self._last_t % self.config.map_every_steps != 0:
+            for k, explorer in enumerate(self._explorers):
+                self._write(self.topics.observed(f"r{k}", explorer.observed, stamp_ns))
+        self.recording.close()
+        return self.recording.messages
+
+    def _plan(self, k: int, robot: str, explorer: Explorer, stamp_ns: int) -> None:
+        path = np.zeros((0, 2), np.int64) if explorer.path is None else explorer.path
+        digest = np.asarray(path, dtype=np.int64).tobytes()
+        if self._last_path.get(k) != digest:
+            self._last_path[k] = digest
+            self._write(self.topics.plan(robot, path, stamp_ns))
+
+    def _mean(self, k: int, robot: str, explorer: Explorer, stamp_ns: int) -> None:
+        prediction = explorer.prediction
+        if prediction is None or not len(prediction.answered):
+            return
+        if self._last_prediction.get(k) is not prediction:
+            self._last_prediction[k] = prediction
+            self._write(self.topics.mean(robot, prediction.mean, stamp_ns))
+
+    def _write(self, messages: list[Outgoing]) -> None:
+        for outgoing in messages:
+            self.recording.write(outgoing)

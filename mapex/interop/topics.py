@@ -1,0 +1,127 @@
+"""The topics a run appears on in ROS 2 and Foxglove tools, and what is sent on them.
+
+Per robot of a run (`<run>` and `<robot>` made valid ROS name tokens by `ros_token`):
+
+| ROS 2 topic | type | content |
+|---|---|---|
+| `/mapex/<run>/<robot>/map` | nav_msgs/msg/OccupancyGrid | observed map: -1 / 0 / 100 |
+| `/mapex/<run>/<robot>/prediction_mean` | nav_msgs/msg/OccupancyGrid | ensemble mean 0..100 |
+| `/mapex/<run>/<robot>/pose` | geometry_msgs/msg/PoseStamped | robot pose |
+| `/mapex/<run>/<robot>/plan` | nav_msgs/msg/Path | planned path to the goal |
+| `/mapex/<run>/<robot>/trajectory` | nav_msgs/msg/Path | every pose so far |
+
+The same content goes on `/foxglove/mapex/<run>/<robot>/<name>` as `foxglove.Grid`,
+`foxglove.PoseInFrame` and `foxglove.PosesInFrame` (MCAP recordings, the Foxglove server).
+Maps are latched (transient local, the last one kept for late subscribers).
+`RunTopics` turns a run's arrays into `Outgoing` messages; the bridges only send them.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from mapex.interop import foxglove_messages as fox
+from mapex.interop import ros_messages as ros
+from mapex.interop.ros_messages import MapFrame
+
+TOPIC_ROOT = "mapex"
+FOXGLOVE_ROOT = "foxglove"
+# name -> (ROS type, latched)
+ROBOT_TOPICS: dict[str, tuple[str, bool]] = {
+    "map": (ros.GRID_TYPE, True),
+    "prediction_mean": (ros.GRID_TYPE, True),
+    "pose": (ros.POSE_TYPE, False),
+    "plan": (ros.PATH_TYPE, False),
+    "trajectory": (ros.PATH_TYPE, False),
+}
+
+
+def ros_token(text: str) -> str:
+    """`text` as one valid ROS 2 name token: letters, digits and single underscores, not
+    starting with a digit ('50052748_plan1-mapex' -> 'n50052748_plan1_mapex')."""
+    token = re.sub(r"[^A-Za-z0-9_]", "_", text)
+    token = re.sub(r"_+", "_", token).strip("_") or "unnamed"
+    return f"n{token}" if token[0].isdigit() else token
+
+
+def robot_topic(run: str, robot: str, name: str) -> str:
+    """The ROS 2 topic of one of a robot's `ROBOT_TOPICS`."""
+    if name not in ROBOT_TOPICS:
+        raise ValueError(f"unknown topic {name!r} (choose from {', '.join(ROBOT_TOPICS)})")
+    return f"/{TOPIC_ROOT}/{ros_token(run)}/{ros_token(robot)}/{name}"
+
+
+def foxglove_topic(ros_topic: str) -> str:
+    """The Foxglove channel beside a ROS 2 topic."""
+    return f"/{FOXGLOVE_ROOT}{ros_topic}"
+
+
+@dataclass(frozen=True)
+class Outgoing:
+    """One message to send: its ROS topic and type, the rosbags message, the Foxglove
+    message of the same content (None without the SDK), and whether it is latched."""
+
+    topic: str
+    ros_type: str
+    message: Any
+    foxglove: Any | None
+    latched: bool
+    stamp_ns: int
+
+
+@dataclass
+class RunTopics:
+    """One run's messages: the map frame and every robot's trajectory so far."""
+
+    run: str
+    frame: MapFrame
+    with_foxglove: bool = True
+    trajectories: dict[str, list[tuple[int, int]]] = field(default_factory=dict)
+
+    def observed(self, robot: str, codes: np.ndarray, stamp_ns: int) -> list[Outgoing]:
+        """The observed map (uint8 codes of mapex.grid)."""
+        message = ros.occupancy_grid(ros.observed_values(codes), self.frame, stamp_ns)
+        foxglove = self._fox(fox.observed_grid, codes, stamp_ns)
+        return [self._out(robot, "map", message, foxglove, stamp_ns)]
+
+    def mean(self, robot: str, probability: np.ndarray, stamp_ns: int) -> list[Outgoing]:
+        """The ensemble mean (occupancy probabilities in [0, 1])."""
+        message = ros.occupancy_grid(ros.probability_values(probability), self.frame, stamp_ns)
+        foxglove = self._fox(fox.probability_grid, probability, stamp_ns)
+        return [self._out(robot, "prediction_mean", message, foxglove, stamp_ns)]
+
+    def pose(self, robot: str, cell: tuple[int, int], stamp_ns: int) -> list[Outgoing]:
+        """The pose, and the trajectory with it when the robot moved."""
+        cell = (int(cell[0]), int(cell[1]))
+        out = [
+            self._out(
+                robot, "pose", ros.pose_stamped(np.asarray(cell), self.frame, stamp_ns),
+                self._fox(fox.pose_in_frame, np.asarray(cell), stamp_ns), stamp_ns,
+            )
+        ]  # fmt: skip
+        trajectory = self.trajectories.setdefault(robot, [])
+        if not trajectory or trajectory[-1] != cell:
+            trajectory.append(cell)
+            out.append(self._path(robot, "trajectory", np.asarray(trajectory), stamp_ns))
+        return out
+
+    def plan(self, robot: str, cells: np.ndarray, stamp_ns: int) -> list[Outgoing]:
+        """The planned path (int (k, 2) cells; empty: no goal)."""
+        return [self._path(robot, "plan", np.asarray(cells).reshape(-1, 2), stamp_ns)]
+
+    def _path(self, robot: str, name: str, cells: np.ndarray, stamp_ns: int) -> Outgoing:
+        message = ros.path(cells, self.frame, stamp_ns)
+        foxglove = self._fox(fox.poses_in_frame, cells, stamp_ns)
+        return self._out(robot, name, message, foxglove, stamp_ns)
+
+    def _fox(self, build, values, stamp_ns: int) -> Any | None:
+        return build(values, self.frame, stamp_ns) if self.with_foxglove else None
+
+    def _out(self, robot: str, name: str, message: Any, foxglove: Any, stamp_ns: int) -> Outgoing:
+        ros_type, latched = ROBOT_TOPICS[name]
+        topic = robot_topic(self.run, robot, name)
+        return Outgoing(topic, ros_type, message, foxglove, latched, stamp_ns)

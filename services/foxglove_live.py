@@ -1,0 +1,83 @@
+"""A live Foxglove WebSocket server with a run's topics (`--foxglove` on services.up and
+services.ros2), for users of the Foxglove app (open a connection to ws://127.0.0.1:8765).
+
+It serves the same channels as an MCAP recording (`mapex.interop.mcap_file`): each ROS 2
+topic as CDR with its ros2msg schema, and beside it the Foxglove-schema channel
+(`/foxglove/...`). Channels are made as topics first appear; the Foxglove SDK keeps them in
+a context of this server's own. Needs the Foxglove SDK (`pip install -e '.[foxglove]'`).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import zenoh
+
+from mapex.interop.ros_messages import MissingExtraError, message_definition, serialize
+from mapex.interop.topics import Outgoing, foxglove_topic
+from services.config import Ros2Config
+from services.follow import RunFollower
+from services.ros_translate import RunTranslator
+
+FOXGLOVE_DEFAULT_PORT = 8765  # the Foxglove app's default WebSocket port
+
+log = logging.getLogger("services.foxglove_live")
+
+
+class FoxgloveServer:
+    """The WebSocket server and its channels; `write` logs one message on both channels."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = FOXGLOVE_DEFAULT_PORT) -> None:
+        try:
+            import foxglove
+        except ImportError as error:
+            raise MissingExtraError(
+                "--foxglove needs the foxglove extra: pip install -e '.[foxglove]'"
+            ) from error
+        self._foxglove = foxglove
+        self.context = foxglove.Context()
+        self.server = foxglove.start_server(
+            name="mapex", host=host, port=port, context=self.context
+        )
+        self.port = self.server.port
+        self._channels: dict[str, Any] = {}
+        log.info("Foxglove WebSocket server on ws://%s:%d", host, self.port)
+
+    def write(self, outgoing: Outgoing) -> None:
+        """Log `outgoing` as CDR on its ROS topic and as protobuf on its Foxglove topic."""
+        self._channel(outgoing.topic, "cdr", outgoing.ros_type, "ros2msg",
+                      lambda: message_definition(outgoing.ros_type).encode()
+                      ).log(serialize(outgoing.message), log_time=outgoing.stamp_ns)  # fmt: skip
+        if outgoing.foxglove is not None:
+            schema = outgoing.foxglove.get_schema()
+            channel = self._channel(foxglove_topic(outgoing.topic), schema.encoding, schema.name,
+                                    schema.encoding, lambda: schema.data)  # fmt: skip
+            channel.log(outgoing.foxglove.encode(), log_time=outgoing.stamp_ns)
+
+    def close(self) -> None:
+        self.server.stop()
+
+    def _channel(self, topic: str, encoding: str, name: str, schema_encoding: str, data) -> Any:
+        if topic not in self._channels:
+            schema = self._foxglove.Schema(name=name, encoding=schema_encoding, data=data())
+            self._channels[topic] = self._foxglove.Channel(
+                topic, schema=schema, message_encoding=encoding, context=self.context
+            )
+        return self._channels[topic]
+
+
+class FoxgloveLive:
+    """A `FoxgloveServer` fed by a follower of `run` (None: every run) on `session`."""
+
+    def __init__(
+        self, session: zenoh.Session, run: str | None = None, host: str = "127.0.0.1",
+        port: int = FOXGLOVE_DEFAULT_PORT, config: Ros2Config | None = None,
+    ) -> None:  # fmt: skip
+        self.server = FoxgloveServer(host, port)
+        translate = RunTranslator(self.server.write, config or Ros2Config(), with_foxglove=True)
+        self.follower = RunFollower(session, translate, run)
+
+    def close(self) -> None:
+        self.follower.close()
+        self.server.close()

@@ -1,0 +1,121 @@
+"""The outside-tool flags of `services.up` and `services.evaluate`, and starting those tools.
+
+* `--record FILE.mcap`: an MCAP recording of every run, in-process (`services.record`);
+* `--ros2` (with `--ros-connect ENDPOINT`, `--ros-domain N`): the ROS 2 bridge as a child
+  process (`services.ros2`), supervised like the others;
+* `--web [PORT]`: the live browser view, in-process (`services.web`);
+* `--foxglove [PORT]`: the Foxglove SDK's WebSocket server, in-process
+  (`services.foxglove_live`).
+
+Everything in-process follows the runs on the hub session; every flag's problem (a file
+that exists, a missing extra) is one line before any process starts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import zenoh
+
+from mapex.config import ConfigError
+from mapex.interop.mcap_file import record_path_problem
+from services.foxglove_live import FOXGLOVE_DEFAULT_PORT
+from services.supervisor import ProcessSpec
+from services.web import DEFAULT_WEB, WebConfig, WebView
+
+log = logging.getLogger("services.outside_tools")
+
+RECORD_FINISH_WAIT_S = 5.0  # after the planners exit: time for their last frames to arrive
+
+
+def add_outside_tool_arguments(parser: argparse.ArgumentParser) -> None:
+    """--record, --ros2, --ros-connect, --ros-domain, --web, --foxglove."""
+    group = parser.add_argument_group("outside tools (docs/interop.md)")
+    group.add_argument(
+        "--record", type=Path, default=None, metavar="FILE.mcap",
+        help="record every run as a rosbag2-compatible MCAP (ROS 2 and Foxglove topics)",
+    )  # fmt: skip
+    group.add_argument(
+        "--ros2", action="store_true",
+        help="run the ROS 2 bridge (services.ros2): topics /mapex/<run>/<robot>/... over "
+        "rmw_zenoh",
+    )  # fmt: skip
+    group.add_argument(
+        "--ros-connect", default=None, metavar="ENDPOINT",
+        help="with --ros2: publish through the ROS 2 router there (rmw_zenohd)",
+    )  # fmt: skip
+    group.add_argument("--ros-domain", type=int, default=None, help="with --ros2: ROS_DOMAIN_ID")
+    group.add_argument(
+        "--web", type=int, nargs="?", const=DEFAULT_WEB.port, default=None, metavar="PORT",
+        help=f"serve the live browser view on http://127.0.0.1:PORT (default {DEFAULT_WEB.port})",
+    )  # fmt: skip
+    group.add_argument(
+        "--foxglove", type=int, nargs="?", const=FOXGLOVE_DEFAULT_PORT, default=None,
+        metavar="PORT", help="serve the run to the Foxglove app on ws://127.0.0.1:PORT "
+        f"(default {FOXGLOVE_DEFAULT_PORT})",
+    )  # fmt: skip
+
+
+def check_outside_tool_arguments(args: argparse.Namespace) -> None:
+    """ConfigError (one line) for a bad flag or a missing extra, before anything starts."""
+    if args.record is not None and (problem := record_path_problem(args.record)):
+        raise ConfigError(f"--record {problem}")
+    if (args.ros_connect or args.ros_domain is not None) and not args.ros2:
+        raise ConfigError("--ros-connect and --ros-domain go with --ros2")
+    if args.ros_domain is not None and not 0 <= args.ros_domain <= 232:
+        raise ConfigError(f"--ros-domain {args.ros_domain} is not a ROS 2 domain id (0-232)")
+    if args.record is not None or args.ros2:
+        _require("rosbags", "--record and --ros2 need the ros extra: pip install -e '.[ros]'")
+    if args.foxglove is not None:
+        _require("foxglove", "--foxglove needs the foxglove extra: pip install -e '.[foxglove]'")
+
+
+def bridge_spec(args: argparse.Namespace, zenoh_flags: Sequence[str]) -> list[ProcessSpec]:
+    """The ROS 2 bridge child (`--ros2`), or none."""
+    if not args.ros2:
+        return []
+    extra = ["--ros-connect", args.ros_connect] if args.ros_connect else []
+    extra += ["--domain", str(args.ros_domain)] if args.ros_domain is not None else []
+    return [ProcessSpec("ros2-bridge", "services.ros2", (*extra, *zenoh_flags))]
+
+
+class OutsideTools:
+    """The in-process tools asked for (recording, Foxglove server, browser view), started on
+    `session`; a port that is taken is an OSError (one line) before any child starts."""
+
+    def __init__(self, session: zenoh.Session, args: argparse.Namespace) -> None:
+        from services.foxglove_live import FoxgloveLive
+        from services.record import RunRecorder
+
+        self.recorder = self.foxglove = self.web = None
+        try:
+            self.recorder = RunRecorder(session, args.record) if args.record else None
+            if args.foxglove is not None:
+                self.foxglove = FoxgloveLive(session, port=args.foxglove)
+            if args.web is not None:
+                self.web = WebView(session, None, WebConfig(port=args.web)).start()
+                log.info("browser view at %s", self.web.url)
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self, runs: Sequence[str] = ()) -> None:
+        """Stop the tools; the recording first waits a little for `runs` to say finished."""
+        if self.web is not None:
+            self.web.close()
+        if self.foxglove is not None:
+            self.foxglove.close()
+        if self.recorder is not None:
+            if runs and not self.recorder.wait_finished(runs, RECORD_FINISH_WAIT_S):
+                log.warning("recording closed before every run said finished")
+            self.recorder.close()
+
+
+def _require(module: str, message: str) -> None:
+    try:
+        __import__(module)
+    except ImportError:
+        raise ConfigError(message) from None

@@ -1,0 +1,80 @@
+"""A run's updates (services.follow) as the messages of its ROS 2 and Foxglove topics.
+
+The one translation `services.ros2` (live, over rmw_zenoh) and `services.record` (MCAP)
+share: maps, poses and paths become `mapex.interop.topics.Outgoing` messages in the run's
+`map` frame, placed by the run's world info (shape, resolution) or, until it arrives, by
+the first map's shape and `Ros2Config.default_resolution_m`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+
+from mapex.interop.ros_messages import MapFrame
+from mapex.interop.topics import Outgoing, RunTopics, ros_token
+from services.config import Ros2Config
+from services.follow import Update
+from services.messages import MapMessage
+
+log = logging.getLogger("services.ros_translate")
+
+
+class RunTranslator:
+    """A `RunFollower` sink: each update as the ROS (and Foxglove) messages of
+    `mapex.interop.topics`, handed to `send`: a ROS node's publish (`services.ros2`) or an
+    MCAP recording's write (`services.record`). Keeps the `max_runs` newest runs; `forget`
+    is told the topic prefix of an older run that goes."""
+
+    def __init__(
+        self,
+        send: Callable[[Outgoing], None],
+        config: Ros2Config,
+        forget: Callable[[str], None] | None = None,
+        with_foxglove: bool = False,
+    ) -> None:
+        self.send, self.forget, self.config = send, forget, config
+        self.with_foxglove = with_foxglove
+        self.runs: OrderedDict[str, RunTopics] = OrderedDict()
+        self._frames: dict[str, MapFrame] = {}
+
+    def __call__(self, update: Update) -> None:
+        if update.topic == "world_info":
+            info = update.message
+            self._frames[update.run] = MapFrame(*info.shape, info.resolution_m)
+            if update.run in self.runs:
+                self.runs[update.run].frame = self._frames[update.run]
+            return
+        for outgoing in self._messages(update):
+            self.send(outgoing)
+
+    def _messages(self, update: Update) -> list[Outgoing]:
+        message, stamp_ns, robot = update.message, time.time_ns(), update.robot
+        if isinstance(message, MapMessage):
+            topics = self._run(update.run, message.map_u8.shape)
+            if update.topic == "observed_map":
+                return topics.observed(robot, message.map_u8, stamp_ns)
+            if update.topic == "prediction/mean":
+                return topics.mean(robot, message.probabilities(), stamp_ns)
+            return []
+        topics = self.runs.get(update.run)
+        if topics is None:
+            return []  # no map and no world info of this run yet: no frame to place it in
+        if update.topic == "pose":
+            return topics.pose(robot, message.pose, stamp_ns)
+        if update.topic == "path":
+            return topics.plan(robot, message.cells, stamp_ns)
+        return []
+
+    def _run(self, run: str, shape: tuple[int, int]) -> RunTopics:
+        if run not in self.runs:
+            frame = self._frames.get(run) or MapFrame(*shape, self.config.default_resolution_m)
+            self.runs[run] = RunTopics(run, frame, self.with_foxglove)
+            while len(self.runs) > self.config.max_runs:
+                old, _ = self.runs.popitem(last=False)
+                if self.forget is not None:
+                    self.forget(f"/mapex/{ros_token(old)}/")
+                log.info("run %s withdrawn (more than %d runs)", old, self.config.max_runs)
+        return self.runs[run]

@@ -1,0 +1,795 @@
+"""Watch runs live in a browser: `python -m services.web`, a page fed by Server-Sent Events.
+
+    python -m services.web [--run RUN] [--host 127.0.0.1] [--port 8000] [--allow-remote]
+        [--map-events-per-s 4] [--mode ...] [--connect ...] [--listen ...] [--config ...]
+
+Follows every robot of one run (`--run`), or of every run, including runs started later,
+with `services.follow.RunFollower`, and serves with the standard library's
+`http.server.ThreadingHTTPServer` (no web framework, nothing fetched from the internet):
+
+* `GET /`, `/app.js`, `/style.css`: the page, package data of `services/web_page/` read
+  with `importlib.resources` (so it works installed). For each robot: the observed map on a
+  canvas of the map's size in cells (row 0 on top, as `services.watch` draws it), scaled up
+  with `image-rendering: pixelated`, under an overlay of the frontiers (coloured by score),
+  the goal, the planned path, the pose and the trajectory; the ensemble mean and variance;
+  the status line and step; coverage, IoU and TU against t on a small canvas.
+* `GET /state`: a JSON snapshot of everything known (`ViewState.snapshot`):
+  `{"followed_run": RUN|null, "runs": {run: {"world": EVENT|null, "robots": {robot:
+  {"t": T, "latest": {topic: EVENT}, "metrics_history": [METRICS EVENT...],
+  "trajectory": [[row, col], ...]}}}}}`.
+* `GET /events`: a Server-Sent Events stream. First a `snapshot` event (the `/state`
+  document, taken atomically with the subscription, so nothing falls between the two),
+  then one `update` event per followed message (`encode_update`), and a `: keep-alive`
+  comment after `WebConfig.keepalive_s` of silence. An EVENT is a JSON object with `run`,
+  `robot` (null for world_info), `topic` and, except world_info, the step `t`:
+
+  ==========================  ==============================================================
+  topic                       other fields
+  ==========================  ==============================================================
+  observed_map, prediction/*  kind, width (cols), height (rows), data: base64 of the uint8
+                              map, row-major (observed: codes 0 free / 1 unknown / 2
+                              occupied; mean and variance: probabilities quantised q/255)
+  pose                        pose [row, col]
+  frontiers                   cells [[row, col], ...], scores [float or null (not finite)]
+  goal                        goal [row, col] or null
+  path                        cells [[row, col], ...]
+  status                      state (starting, running, finished, failed), detail
+  metrics                     coverage, iou, tu (null when not computed), degraded
+  world_info                  name, shape [rows, cols], resolution_m
+  ==========================  ==============================================================
+
+Maps are throttled: at most `WebConfig.map_events_per_s` per robot and map kind; a map that
+arrives sooner is held back and replaced by any newer one, so the newest map is always sent
+(the `/state` snapshot always has it at once). Everything else is sent as it arrives. A
+message older (smaller t) than the one already known for its topic (a late-joiner reply
+overtaken by a live sample) is ignored. A client that falls `client_max_queued_events`
+behind is dropped; its browser reconnects after `retry_ms` and starts again from a fresh
+snapshot. A client that disconnects is dropped quietly. The page accumulates the
+trajectory from the poses; the server keeps one too, for pages opened late (from the
+moment the view joined the run). Messages of different keys may arrive in any order (Zenoh
+orders each key only), so both sides compare steps per topic, never across topics.
+
+The page's hooks for tests and tools: every canvas carries `data-run`, `data-robot` and
+`data-kind` (observed, overlay, mean, variance, metrics) and the id `KIND-RUN-ROBOT`; a
+map canvas is `width` = cols by `height` = rows, with `data-map-t` the step of the map
+painted; the robot's `section` and its observed canvas carry `data-t`, the latest step
+applied for that robot (it grows while the run goes on).
+
+Security: the view has no authentication, so it binds loopback only: `--host` must be a
+loopback address or `localhost` unless `--allow-remote` is given, and requests whose
+`Host` header is not loopback are refused (403) unless `--allow-remote`, so a web page
+elsewhere cannot read the view through DNS rebinding.
+
+`--port 0` picks a free port; the URL served is logged (`serving http://HOST:PORT/`).
+Malformed payloads and keys are dropped with a log line by the follower and the stream goes
+on. Bad flags: one line, exit 2; a port that cannot be bound or a Zenoh config that is
+refused: one line, exit 2. SIGINT/SIGTERM: exit 0.
+
+In another process (`services.up --web`), with a session already open:
+
+    view = WebView(session, run=None, config=WebConfig(port=8000)).start()
+    log.info("live view at %s", view.url)
+    ...
+    view.close()
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import ipaddress
+import json
+import logging
+import math
+import socket
+import socketserver
+import sys
+import threading
+import time
+from collections import OrderedDict, deque
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from importlib import resources
+from typing import Any
+from urllib.parse import urlsplit
+
+import numpy as np
+import zenoh
+
+from mapex.exit_codes import EXIT_USAGE
+from services.follow import MAP_KIND_OF_TOPIC, RunFollower, Update
+from services.keys import ID_MAX_CHARS, RESERVED_RUN_IDS, is_valid_id
+from services.messages import (
+    FrontiersMessage,
+    GoalMessage,
+    MapMessage,
+    Message,
+    MetricsMessage,
+    PathMessage,
+    PoseMessage,
+    StatusMessage,
+    WorldInfo,
+)
+from services.serving import configure_logging, stop_on_signals, wait_for
+from services.zenoh_config import (
+    ZenohConfigError,
+    add_zenoh_arguments,
+    open_session,
+    zenoh_config_from_args,
+)
+
+log = logging.getLogger("services.web")
+
+
+# WebConfig lives here rather than beside WatchConfig in services/config.py so that the view
+# stays one self-contained module; it is a plain frozen dataclass like the others.
+@dataclass(frozen=True)
+class WebConfig:
+    """The browser view `services.web`: where it serves, how much it sends, what it keeps."""
+
+    host: str = "127.0.0.1"  # loopback only unless allow_remote: the view has no authentication
+    port: int = 8000  # 0: any free port, logged (8765 is the Foxglove server's)
+    allow_remote: bool = False  # serve a non-loopback host and accept any Host header
+    map_events_per_s: float = 4.0  # per robot and map kind; a map held back is replaced by
+    # newer ones and sent as soon as its turn comes (the newest always gets out)
+    flush_poll_s: float = 0.05  # how often held-back maps are looked at
+    keepalive_s: float = 5.0  # an SSE comment after this long without events (finds gone clients)
+    retry_ms: int = 1000  # how long a browser waits before reconnecting a dropped stream
+    client_max_queued_events: int = 512  # a client this far behind is dropped (it reconnects
+    # and starts again from a fresh snapshot)
+    max_metric_points: int = 5000  # metric samples kept per robot for late pages
+    max_trajectory_points: int = 20000  # poses kept per robot for late pages
+    max_runs: int = 32  # runs kept; the one updated least recently is forgotten first
+    close_timeout_s: float = 5.0  # how long `WebView.close` waits for each of its threads
+
+
+DEFAULT_WEB = WebConfig()
+MAX_PORT = 65535
+LOCAL_HOST_NAMES = ("localhost",)  # host names accepted as loopback without --allow-remote
+PAGE_PACKAGE, PAGE_FOLDER = "services", "web_page"
+PAGE_FILES = {  # URL path -> (file of services/web_page, content type)
+    "/": ("index.html", "text/html; charset=utf-8"),
+    "/index.html": ("index.html", "text/html; charset=utf-8"),
+    "/app.js": ("app.js", "text/javascript; charset=utf-8"),
+    "/style.css": ("style.css", "text/css; charset=utf-8"),
+}
+JSON_TYPE = "application/json"
+EVENT_STREAM_TYPE = "text/event-stream"
+KEEPALIVE_FRAME = b": keep-alive\n\n"
+
+
+# ---------------------------------------------------------------------------- event encoding
+
+
+def _cells(cells: Any) -> list[list[int]]:
+    """(row, col) cells, an int array (k, 2) or a list of pairs, as JSON lists."""
+    return np.asarray(cells, dtype=np.int64).reshape(-1, 2).tolist()
+
+
+def _finite_or_none(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+def _encode_map(message: MapMessage) -> dict[str, Any]:
+    rows, cols = message.map_u8.shape
+    data = base64.b64encode(message.map_u8.tobytes(order="C")).decode("ascii")
+    return {"t": message.t, "kind": message.kind, "width": cols, "height": rows, "data": data}
+
+
+_ENCODERS: dict[type[Message], Callable[[Any], dict[str, Any]]] = {
+    MapMessage: _encode_map,
+    PoseMessage: lambda m: {"t": m.t, "pose": [int(m.pose[0]), int(m.pose[1])]},
+    FrontiersMessage: lambda m: {
+        "t": m.t,
+        "cells": _cells(m.cells),
+        "scores": [_finite_or_none(s) for s in m.scores.tolist()],
+    },
+    GoalMessage: lambda m: {"t": m.t, "goal": None if m.goal is None else _cells([m.goal])[0]},
+    PathMessage: lambda m: {"t": m.t, "cells": _cells(m.cells)},
+    StatusMessage: lambda m: {"t": m.t, "state": m.state, "detail": m.detail},
+    MetricsMessage: lambda m: {
+        "t": m.t,
+        "coverage": m.coverage,
+        "iou": m.iou,
+        "tu": m.tu,
+        "degraded": m.degraded,
+    },
+    WorldInfo: lambda m: {
+        "name": m.name,
+        "shape": [int(m.shape[0]), int(m.shape[1])],
+        "resolution_m": m.resolution_m,
+    },
+}
+
+
+def encode_update(update: Update) -> dict[str, Any]:
+    """The JSON-able event of an update: run, robot, topic, then the message's fields (the
+    table of the module docstring). Non-finite frontier scores become null."""
+    head = {"run": update.run, "robot": update.robot, "topic": update.topic}
+    return {**head, **_ENCODERS[type(update.message)](update.message)}
+
+
+def sse_frame(event: str, data: dict[str, Any]) -> bytes:
+    """One Server-Sent Events frame: `event: NAME`, one `data:` line of compact JSON."""
+    text = json.dumps(data, separators=(",", ":"), allow_nan=False)
+    return f"event: {event}\ndata: {text}\n\n".encode()
+
+
+def _step(update: Update) -> int | None:
+    return getattr(update.message, "t", None)
+
+
+# ---------------------------------------------------------------------------- throttling
+
+
+ThrottleKey = tuple[str, str | None, str]  # (run, robot, topic)
+
+
+class MapThrottle:
+    """At most one map per `min_interval_s` per (run, robot, topic); the newest always gets out.
+
+    `offer` says whether an update may go now; one that may not is held back, replacing any
+    older one held for its key, and `due` hands it over once its key's interval has passed.
+    Times are passed in (monotonic seconds) so the class is pure and testable.
+    """
+
+    def __init__(self, min_interval_s: float) -> None:
+        self.min_interval_s = min_interval_s
+        self._last_sent_s: dict[ThrottleKey, float] = {}
+        self._held: dict[ThrottleKey, Update] = {}
+
+    def offer(self, update: Update, now_s: float) -> Update | None:
+        """`update` if it may be sent now (the caller sends it), else None (it is held)."""
+        key = (update.run, update.robot, update.topic)
+        if self._may_send(key, now_s):
+            self._last_sent_s[key] = now_s
+            self._held.pop(key, None)
+            return update
+        self._held[key] = update
+        return None
+
+    def due(self, now_s: float) -> list[Update]:
+        """The held updates whose interval has passed (the caller sends them), in key order."""
+        ready = [key for key in self._held if self._may_send(key, now_s)]
+        for key in ready:
+            self._last_sent_s[key] = now_s
+        return [self._held.pop(key) for key in ready]
+
+    def held(self) -> int:
+        """How many updates are held back."""
+        return len(self._held)
+
+    def _may_send(self, key: ThrottleKey, now_s: float) -> bool:
+        last_s = self._last_sent_s.get(key)
+        return last_s is None or now_s - last_s >= self.min_interval_s
+
+
+# ---------------------------------------------------------------------------- what is known
+
+
+@dataclass
+class RobotRecord:
+    """What is known of one robot: the latest update per topic, its metric samples and poses."""
+
+    latest: dict[str, Update] = field(default_factory=dict)
+    metrics_history: deque[dict[str, Any]] = field(default_factory=deque)
+    trajectory: deque[tuple[int, int]] = field(default_factory=deque)
+
+    @property
+    def t(self) -> int | None:
+        """The latest step any known message of this robot is about."""
+        steps = [step for step in map(_step, self.latest.values()) if step is not None]
+        return max(steps) if steps else None
+
+
+@dataclass
+class RunRecord:
+    """What is known of one run: its world info and its robots."""
+
+    world: Update | None = None
+    robots: dict[str, RobotRecord] = field(default_factory=dict)
+
+
+class ViewState:
+    """Everything the view knows, for `/state` and a new stream's snapshot. Not thread-safe:
+    `WebView` holds its lock around every call."""
+
+    def __init__(self, config: WebConfig = DEFAULT_WEB, followed_run: str | None = None) -> None:
+        self.config = config
+        self.followed_run = followed_run
+        self.runs: OrderedDict[str, RunRecord] = OrderedDict()  # least recently updated first
+
+    def apply(self, update: Update) -> bool:
+        """Take `update` in; False (and nothing changes) when it is older than the known one."""
+        run = self._run(update.run)
+        if update.robot is None:
+            run.world = update
+            return True
+        robot = run.robots.setdefault(update.robot, self._new_robot())
+        known = robot.latest.get(update.topic)
+        if known is not None and _step(update) < _step(known):
+            return False
+        robot.latest[update.topic] = update
+        self._accumulate(robot, update.message)
+        return True
+
+    def snapshot(self) -> dict[str, Any]:
+        """The `/state` document (see the module docstring)."""
+        return {
+            "followed_run": self.followed_run,
+            "runs": {name: self._run_snapshot(run) for name, run in self.runs.items()},
+        }
+
+    def _run(self, name: str) -> RunRecord:
+        if name not in self.runs:
+            self.runs[name] = RunRecord()
+            while len(self.runs) > self.config.max_runs:
+                forgotten, _ = self.runs.popitem(last=False)
+                log.info("forgot run %s (more than %d runs)", forgotten, self.config.max_runs)
+        self.runs.move_to_end(name)
+        return self.runs[name]
+
+    def _new_robot(self) -> RobotRecord:
+        return RobotRecord(
+            metrics_history=deque(maxlen=self.config.max_metric_points),
+            trajectory=deque(maxlen=self.config.max_trajectory_points),
+        )
+
+    @staticmethod
+    def _accumulate(robot: RobotRecord, message: Message) -> None:
+        """Extend the metric history and the trajectory with a new sample or a moved pose."""
+        if isinstance(message, MetricsMessage):
+            history = robot.metrics_history
+            if not history or message.t > history[-1]["t"]:
+                history.append(_ENCODERS[MetricsMessage](message))
+        elif isinstance(message, PoseMessage):
+            cell = (int(message.pose[0]), int(message.pose[1]))
+            if not robot.trajectory or robot.trajectory[-1] != cell:
+                robot.trajectory.append(cell)
+
+    @staticmethod
+    def _run_snapshot(run: RunRecord) -> dict[str, Any]:
+        return {
+            "world": None if run.world is None else encode_update(run.world),
+            "robots": {
+                name: {
+                    "t": robot.t,
+                    "latest": {topic: encode_update(u) for topic, u in robot.latest.items()},
+                    "metrics_history": list(robot.metrics_history),
+                    "trajectory": [list(cell) for cell in robot.trajectory],
+                }
+                for name, robot in sorted(run.robots.items())
+            },
+        }
+
+
+# ---------------------------------------------------------------------------- event clients
+
+
+class EventClient:
+    """The frames waiting for one `/events` stream, filled by `WebView`, drained by its
+    handler thread. Closed when it overflows (a stalled browser) or when the view closes."""
+
+    def __init__(self, max_queued_events: int) -> None:
+        self.max_queued_events = max_queued_events
+        self._frames: deque[bytes] = deque()
+        self._changed = threading.Condition()
+        self.closed = False
+
+    def push(self, frame: bytes) -> bool:
+        """Queue `frame`; False (and the client is closed) when it is closed or too far behind."""
+        with self._changed:
+            if not self.closed and len(self._frames) >= self.max_queued_events:
+                self.closed = True
+            if self.closed:
+                self._changed.notify_all()
+                return False
+            self._frames.append(frame)
+            self._changed.notify_all()
+            return True
+
+    def close(self) -> None:
+        """End the stream: `next_frame` returns None from now on."""
+        with self._changed:
+            self.closed = True
+            self._changed.notify_all()
+
+    def next_frame(self, timeout_s: float) -> bytes | None:
+        """The next frame; KEEPALIVE_FRAME after `timeout_s` without one; None once closed."""
+        with self._changed:
+            self._changed.wait_for(lambda: self._frames or self.closed, timeout_s)
+            if self.closed:
+                return None
+            return self._frames.popleft() if self._frames else KEEPALIVE_FRAME
+
+
+# ---------------------------------------------------------------------------- hosts
+
+
+def is_loopback_host(host: str) -> bool:
+    """Whether `host` (an IP address or a name) names this machine's loopback interface."""
+    if host.lower() in LOCAL_HOST_NAMES:
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def check_host(host: str, allow_remote: bool) -> None:
+    """ValueError (one line) for a host beyond loopback without `allow_remote`."""
+    if not allow_remote and not is_loopback_host(host):
+        raise ValueError(
+            f"--host {host!r} is not a loopback address: the view has no authentication, "
+            "add --allow-remote to serve it beyond this machine"
+        )
+
+
+def host_header_allowed(header: str | None, allow_remote: bool) -> bool:
+    """Whether a request's Host header may be answered: a loopback one, or any with
+    `allow_remote` (a loopback-only view refuses rebound DNS names)."""
+    if allow_remote:
+        return True
+    if not header:
+        return False
+    name = urlsplit(f"//{header}").hostname
+    return name is not None and is_loopback_host(name)
+
+
+# ---------------------------------------------------------------------------- the view
+
+
+def load_page_files() -> dict[str, tuple[bytes, str]]:
+    """URL path -> (body, content type) of the page's files, read from the package data."""
+    folder = resources.files(PAGE_PACKAGE).joinpath(PAGE_FOLDER)
+    return {
+        path: (folder.joinpath(name).read_bytes(), content_type)
+        for path, (name, content_type) in PAGE_FILES.items()
+    }
+
+
+class WebView:
+    """The browser view of `run` (None: every run) over an open Zenoh session.
+
+    The constructor binds the HTTP port (OSError, one line naming host and port, when it is
+    taken; ValueError for a host beyond loopback without `allow_remote`); `start` follows
+    the run(s) and serves on threads of its own; `close` stops both (the session stays open:
+    it is the caller's).
+    Usable as a context manager (`with WebView(...) as view:` starts and closes it).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        run: str | None = None,
+        config: WebConfig = DEFAULT_WEB,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        check_host(config.host, config.allow_remote)
+        self.session, self.run, self.config, self.clock = session, run, config, clock
+        self.page_files = load_page_files()
+        self.state = ViewState(config, run)
+        self.throttle = MapThrottle(1.0 / config.map_events_per_s)
+        self.events_sent = 0
+        self._clients: set[EventClient] = set()
+        self._lock = threading.Lock()
+        self._closing = threading.Event()
+        self._follower: RunFollower | None = None
+        self._threads: list[threading.Thread] = []
+        try:
+            self.server = _ViewServer((config.host, config.port), _Handler, self)
+        except OSError as error:  # one line naming the address, e.g. a port already taken
+            reason = error.strerror or str(error)
+            raise OSError(f"cannot serve on {config.host} port {config.port}: {reason}") from None
+
+    @property
+    def port(self) -> int:
+        """The port served (the one picked when the config asked for port 0)."""
+        return int(self.server.server_address[1])
+
+    @property
+    def url(self) -> str:
+        """The page's URL."""
+        host = self.config.host
+        host = f"[{host}]" if ":" in host else host
+        return f"http://{host}:{self.port}/"
+
+    @property
+    def clients(self) -> int:
+        """How many `/events` streams are open."""
+        with self._lock:
+            return len(self._clients)
+
+    def start(self) -> WebView:
+        """Follow the run(s) and serve, on threads of their own; returns self."""
+        self._follower = RunFollower(self.session, self.on_update, self.run)
+        for target, name in ((self.server.serve_forever, "web http"), (self._flush, "web flush")):
+            thread = threading.Thread(target=target, name=name, daemon=True)
+            thread.start()
+            self._threads.append(thread)
+        return self
+
+    def close(self) -> None:
+        """Stop following, end every stream, stop serving and free the port."""
+        self._closing.set()
+        if self._follower is not None:
+            self._follower.close()
+        if self._threads:
+            self.server.shutdown()
+        with self._lock:
+            clients, self._clients = list(self._clients), set()
+        for client in clients:
+            client.close()
+        for thread in self._threads:
+            thread.join(self.config.close_timeout_s)
+        self.server.server_close()
+        dropped = 0 if self._follower is None else self._follower.dropped
+        log.info(
+            "stopped: %d events sent, %d malformed messages dropped", self.events_sent, dropped
+        )
+
+    def __enter__(self) -> WebView:
+        return self.start()
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def subscribe(self) -> tuple[EventClient, bytes]:
+        """A new stream's client and its first frame, the snapshot, taken atomically with
+        the subscription (so every later update reaches the client, none is missed)."""
+        client = EventClient(self.config.client_max_queued_events)
+        with self._lock:
+            snapshot = sse_frame("snapshot", self.state.snapshot())
+            if not self._closing.is_set():
+                self._clients.add(client)
+            else:
+                client.close()
+        return client, snapshot
+
+    def unsubscribe(self, client: EventClient) -> None:
+        """Forget a stream's client (its browser went away)."""
+        client.close()
+        with self._lock:
+            self._clients.discard(client)
+
+    def snapshot_json(self) -> bytes:
+        """The `/state` document as JSON bytes."""
+        with self._lock:
+            snapshot = self.state.snapshot()
+        return json.dumps(snapshot, separators=(",", ":"), allow_nan=False).encode()
+
+    def on_update(self, update: Update) -> None:
+        """Take one update in (the follower's sink, on its one thread; callable directly to
+        feed updates from elsewhere): remember it, then send it now or hold a map back."""
+        with self._lock:
+            if not self.state.apply(update):
+                return
+            if update.topic in MAP_KIND_OF_TOPIC:
+                update = self.throttle.offer(update, self.clock())
+            if update is not None:
+                self._broadcast(update)
+
+    def _flush(self) -> None:
+        """Send held-back maps as their turn comes, until `close`."""
+        while not self._closing.wait(self.config.flush_poll_s):
+            with self._lock:
+                for update in self.throttle.due(self.clock()):
+                    self._broadcast(update)
+
+    def _broadcast(self, update: Update) -> None:
+        """Queue `update` for every client (the lock is held); drop clients too far behind."""
+        frame = sse_frame("update", encode_update(update))
+        self.events_sent += 1
+        for client in list(self._clients):
+            if not client.push(frame):
+                self._clients.discard(client)
+                log.info(
+                    "dropped a stream %d events behind (its browser reconnects)",
+                    self.config.client_max_queued_events,
+                )
+
+
+# ---------------------------------------------------------------------------- HTTP
+
+
+class _ViewServer(ThreadingHTTPServer):
+    """A threading HTTP server that knows its view; IPv6 when the host is an IPv6 address."""
+
+    daemon_threads = True  # open streams never hold the process
+
+    def __init__(self, address: tuple[str, int], handler: type, view: WebView) -> None:
+        self.view = view
+        if ":" in address[0]:
+            self.address_family = socket.AF_INET6
+        super().__init__(address, handler)
+
+    def server_bind(self) -> None:
+        """Bind without HTTPServer's reverse DNS lookup of the host (it can stall offline)."""
+        socketserver.TCPServer.server_bind(self)
+        self.server_name, self.server_port = str(self.server_address[0]), self.server_address[1]
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        """A browser that went away is not an error; anything else is logged with its trace."""
+        error = sys.exc_info()[1]
+        if isinstance(error, ConnectionError):
+            log.debug("client %s went away: %s", client_address, error)
+        else:
+            log.exception("failed to answer %s", client_address)
+
+
+class _Handler(BaseHTTPRequestHandler):
+    """GET the page's files, /state and /events; everything else is 404."""
+
+    server: _ViewServer
+    server_version = "mapex-web"
+
+    def do_GET(self) -> None:  # noqa: N802 (the name http.server dispatches to)
+        view = self.server.view
+        if not host_header_allowed(self.headers.get("Host"), view.config.allow_remote):
+            self._send(HTTPStatus.FORBIDDEN, b"not a loopback Host\n", "text/plain")
+            return
+        path = urlsplit(self.path).path
+        try:
+            if path in view.page_files:
+                self._send(HTTPStatus.OK, *view.page_files[path])
+            elif path == "/state":
+                self._send(HTTPStatus.OK, view.snapshot_json(), JSON_TYPE)
+            elif path == "/events":
+                self._stream(view)
+            else:
+                self._send(HTTPStatus.NOT_FOUND, b"not found\n", "text/plain")
+        except ConnectionError as error:  # the browser closed the tab or reloaded
+            log.debug("client went away during %s: %s", path, error)
+
+    def _send(self, status: HTTPStatus, body: bytes, content_type: str) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", content_type)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        self.wfile.write(body)
+
+    def _stream(self, view: WebView) -> None:
+        """The `/events` stream: the snapshot, then updates and keep-alives until closed."""
+        client, snapshot = view.subscribe()
+        try:
+            self.send_response(HTTPStatus.OK)
+            self.send_header("Content-Type", EVENT_STREAM_TYPE)
+            self.send_header("Cache-Control", "no-store")
+            self.end_headers()
+            self.wfile.write(f"retry: {view.config.retry_ms}\n\n".encode() + snapshot)
+            while (frame := client.next_frame(view.config.keepalive_s)) is not None:
+                self.wfile.write(frame)
+        finally:
+            view.unsubscribe(client)
+
+    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 (the base's name)
+        log.debug("%s %s", self.address_string(), format % args)
+
+
+# ---------------------------------------------------------------------------- entry points
+
+
+def main(
+    config: zenoh.Config,
+    run: str | None = None,
+    host: str | None = None,
+    port: int | None = None,
+    stop: threading.Event | None = None,
+    web: WebConfig = DEFAULT_WEB,
+    on_ready: Callable[[str], None] | None = None,
+) -> None:
+    """Serve the view of `run` (None: every run) on `host`:`port` (None: `web`'s) until `stop`.
+
+    `on_ready` is told the URL once serving. Raises ZenohConfigError when the session is
+    refused, OSError when the port cannot be bound, ValueError for a host beyond loopback
+    without `web.allow_remote`.
+    """
+    web = replace(
+        web, host=web.host if host is None else host, port=web.port if port is None else port
+    )
+    check_host(web.host, web.allow_remote)
+    session = open_session(config)
+    try:
+        with WebView(session, run, web) as view:
+            log.info("serving %s (following %s)", view.url, f"run {run}" if run else "every run")
+            if on_ready is not None:
+                on_ready(view.url)
+            wait_for(stop or threading.Event())
+    finally:
+        session.close()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line flags: run, where to serve, map rate and Zenoh's."""
+    parser = argparse.ArgumentParser(
+        prog="python -m services.web", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument("--run", default=None, help="run id to follow (default: every run)")
+    parser.add_argument(
+        "--host",
+        default=DEFAULT_WEB.host,
+        help="address to serve on, loopback unless --allow-remote (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--port",
+        type=_port,
+        default=DEFAULT_WEB.port,
+        help="port to serve on, 0 for any free one (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--allow-remote",
+        action="store_true",
+        help="serve a non-loopback --host (the view has no authentication)",
+    )
+    parser.add_argument(
+        "--map-events-per-s",
+        type=_positive_rate,
+        default=DEFAULT_WEB.map_events_per_s,
+        help="maps sent per second per robot and map kind, at most (default: %(default)s)",
+    )
+    add_zenoh_arguments(parser)
+    return parser
+
+
+def run_cli(argv: list[str] | None = None) -> int:
+    """Parse flags, serve until SIGINT/SIGTERM; 0 on a clean stop, 2 on bad flags or a port
+    or Zenoh config that cannot be used."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _check_flags(parser, args)
+    configure_logging(f"web[{args.run or 'all'}]")
+    stop = stop_on_signals()
+    web = replace(
+        DEFAULT_WEB, allow_remote=args.allow_remote, map_events_per_s=args.map_events_per_s
+    )
+    try:
+        main(zenoh_config_from_args(args), args.run, args.host, args.port, stop, web)
+    except ZenohConfigError as error:
+        log.error("%s", error)
+        return EXIT_USAGE
+    except OSError as error:
+        log.error("%s", error)
+        return EXIT_USAGE
+    return 0
+
+
+def _port(text: str) -> int:
+    """argparse type of a TCP port: 0 (any free one) to 65535."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= MAX_PORT:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port (0 to {MAX_PORT})")
+    return value
+
+
+def _positive_rate(text: str) -> float:
+    """argparse type of a rate: a finite number of events per second above 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number per second")
+    return value
+
+
+def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """argparse-style one-line errors (exit 2) for flag values argparse cannot check itself."""
+    if args.run is not None and (not is_valid_id(args.run) or args.run in RESERVED_RUN_IDS):
+        parser.error(
+            f"--run {args.run!r} must match [a-z0-9_-]{{1,{ID_MAX_CHARS}}} "
+            f"and not be {' or '.join(sorted(RESERVED_RUN_IDS))}"
+        )
+    try:
+        check_host(args.host, args.allow_remote)
+    except ValueError as error:
+        parser.error(str(error))
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli())
