@@ -73,3 +73,26 @@ class Ros2Config:
     heartbeat_s: float = 0.5  # sample-miss heartbeat of reliable latched topics (as rmw_zenoh)
     max_runs: int = 8  # the topics of older runs are withdrawn (their tokens undeclared)
     default_resolution_m: float = 0.1  # cell size until a run's world_info arrives
+
+
+@dataclass(frozen=True)
+class WebConfig:
+    """The browser view `services.web`: where it serves, how much it sends, what it keeps."""
+
+    host: str = "127.0.0.1"  # loopback only unless allow_remote: the view has no authentication
+    port: int = 8000  # 0: any free port, logged (8765 is the Foxglove server's)
+    allow_remote: bool = False  # serve a non-loopback host and accept any Host header
+    map_events_per_s: float = 4.0  # per robot and map kind; a map held back is replaced by
+    # newer ones and sent as soon as its turn comes (the newest always gets out)
+    flush_poll_s: float = 0.05  # how often held-back maps are looked at
+    keepalive_s: float = 5.0  # an SSE comment after this long without events (finds gone clients)
+    retry_ms: int = 1000  # how long a browser waits before reconnecting a dropped stream
+    client_max_queued_events: int = 512  # a client this far behind is dropped (it reconnects
+    # and starts again from a fresh snapshot)
+    max_metric_points: int = 5000  # metric samples kept per robot for late pages
+    max_trajectory_points: int = 20000  # poses kept per robot for late pages
+    max_runs: int = 32  # runs kept; the one updated least recently is forgotten first
+    close_timeout_s: float = 5.0  # how long `WebView.close` waits for each of its threads
+
+
+DEFAULT_WEB = WebConfig()

@@ -22,9 +22,10 @@ import zenoh
 
 from mapex.config import ConfigError
 from mapex.interop.mcap_file import record_path_problem
+from services.config import DEFAULT_WEB, WebConfig
 from services.foxglove_live import FOXGLOVE_DEFAULT_PORT
 from services.supervisor import ProcessSpec
-from services.web import DEFAULT_WEB, WebConfig, WebView
+from services.web import WebView
 
 log = logging.getLogger("services.outside_tools")
 

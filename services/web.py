@@ -76,7 +76,6 @@ In another process (`services.up --web`), with a session already open:
 from __future__ import annotations
 
 import argparse
-import base64
 import ipaddress
 import json
 import logging
@@ -86,33 +85,28 @@ import socketserver
 import sys
 import threading
 import time
-from collections import OrderedDict, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from typing import Any
 from urllib.parse import urlsplit
 
-import numpy as np
 import zenoh
 
 from mapex.exit_codes import EXIT_USAGE
+from services.config import DEFAULT_WEB, WebConfig
 from services.follow import MAP_KIND_OF_TOPIC, RunFollower, Update
 from services.keys import ID_MAX_CHARS, RESERVED_RUN_IDS, is_valid_id
-from services.messages import (
-    FrontiersMessage,
-    GoalMessage,
-    MapMessage,
-    Message,
-    MetricsMessage,
-    PathMessage,
-    PoseMessage,
-    StatusMessage,
-    WorldInfo,
-)
 from services.serving import configure_logging, stop_on_signals, wait_for
+from services.web_state import (
+    EventClient,
+    MapThrottle,
+    ViewState,
+    encode_update,
+    sse_frame,
+)
 from services.zenoh_config import (
     ZenohConfigError,
     add_zenoh_arguments,
@@ -123,29 +117,6 @@ from services.zenoh_config import (
 log = logging.getLogger("services.web")
 
 
-# WebConfig lives here rather than beside WatchConfig in services/config.py so that the view
-# stays one self-contained module; it is a plain frozen dataclass like the others.
-@dataclass(frozen=True)
-class WebConfig:
-    """The browser view `services.web`: where it serves, how much it sends, what it keeps."""
-
-    host: str = "127.0.0.1"  # loopback only unless allow_remote: the view has no authentication
-    port: int = 8000  # 0: any free port, logged (8765 is the Foxglove server's)
-    allow_remote: bool = False  # serve a non-loopback host and accept any Host header
-    map_events_per_s: float = 4.0  # per robot and map kind; a map held back is replaced by
-    # newer ones and sent as soon as its turn comes (the newest always gets out)
-    flush_poll_s: float = 0.05  # how often held-back maps are looked at
-    keepalive_s: float = 5.0  # an SSE comment after this long without events (finds gone clients)
-    retry_ms: int = 1000  # how long a browser waits before reconnecting a dropped stream
-    client_max_queued_events: int = 512  # a client this far behind is dropped (it reconnects
-    # and starts again from a fresh snapshot)
-    max_metric_points: int = 5000  # metric samples kept per robot for late pages
-    max_trajectory_points: int = 20000  # poses kept per robot for late pages
-    max_runs: int = 32  # runs kept; the one updated least recently is forgotten first
-    close_timeout_s: float = 5.0  # how long `WebView.close` waits for each of its threads
-
-
-DEFAULT_WEB = WebConfig()
 MAX_PORT = 65535
 LOCAL_HOST_NAMES = ("localhost",)  # host names accepted as loopback without --allow-remote
 PAGE_PACKAGE, PAGE_FOLDER = "services", "web_page"
@@ -157,252 +128,6 @@ PAGE_FILES = {  # URL path -> (file of services/web_page, content type)
 }
 JSON_TYPE = "application/json"
 EVENT_STREAM_TYPE = "text/event-stream"
-KEEPALIVE_FRAME = b": keep-alive\n\n"
-
-
-# ---------------------------------------------------------------------------- event encoding
-
-
-def _cells(cells: Any) -> list[list[int]]:
-    """(row, col) cells, an int array (k, 2) or a list of pairs, as JSON lists."""
-    return np.asarray(cells, dtype=np.int64).reshape(-1, 2).tolist()
-
-
-def _finite_or_none(value: float) -> float | None:
-    return float(value) if math.isfinite(value) else None
-
-
-def _encode_map(message: MapMessage) -> dict[str, Any]:
-    rows, cols = message.map_u8.shape
-    data = base64.b64encode(message.map_u8.tobytes(order="C")).decode("ascii")
-    return {"t": message.t, "kind": message.kind, "width": cols, "height": rows, "data": data}
-
-
-_ENCODERS: dict[type[Message], Callable[[Any], dict[str, Any]]] = {
-    MapMessage: _encode_map,
-    PoseMessage: lambda m: {"t": m.t, "pose": [int(m.pose[0]), int(m.pose[1])]},
-    FrontiersMessage: lambda m: {
-        "t": m.t,
-        "cells": _cells(m.cells),
-        "scores": [_finite_or_none(s) for s in m.scores.tolist()],
-    },
-    GoalMessage: lambda m: {"t": m.t, "goal": None if m.goal is None else _cells([m.goal])[0]},
-    PathMessage: lambda m: {"t": m.t, "cells": _cells(m.cells)},
-    StatusMessage: lambda m: {"t": m.t, "state": m.state, "detail": m.detail},
-    MetricsMessage: lambda m: {
-        "t": m.t,
-        "coverage": m.coverage,
-        "iou": m.iou,
-        "tu": m.tu,
-        "degraded": m.degraded,
-    },
-    WorldInfo: lambda m: {
-        "name": m.name,
-        "shape": [int(m.shape[0]), int(m.shape[1])],
-        "resolution_m": m.resolution_m,
-    },
-}
-
-
-def encode_update(update: Update) -> dict[str, Any]:
-    """The JSON-able event of an update: run, robot, topic, then the message's fields (the
-    table of the module docstring). Non-finite frontier scores become null."""
-    head = {"run": update.run, "robot": update.robot, "topic": update.topic}
-    return {**head, **_ENCODERS[type(update.message)](update.message)}
-
-
-def sse_frame(event: str, data: dict[str, Any]) -> bytes:
-    """One Server-Sent Events frame: `event: NAME`, one `data:` line of compact JSON."""
-    text = json.dumps(data, separators=(",", ":"), allow_nan=False)
-    return f"event: {event}\ndata: {text}\n\n".encode()
-
-
-def _step(update: Update) -> int | None:
-    return getattr(update.message, "t", None)
-
-
-# ---------------------------------------------------------------------------- throttling
-
-
-ThrottleKey = tuple[str, str | None, str]  # (run, robot, topic)
-
-
-class MapThrottle:
-    """At most one map per `min_interval_s` per (run, robot, topic); the newest always gets out.
-
-    `offer` says whether an update may go now; one that may not is held back, replacing any
-    older one held for its key, and `due` hands it over once its key's interval has passed.
-    Times are passed in (monotonic seconds) so the class is pure and testable.
-    """
-
-    def __init__(self, min_interval_s: float) -> None:
-        self.min_interval_s = min_interval_s
-        self._last_sent_s: dict[ThrottleKey, float] = {}
-        self._held: dict[ThrottleKey, Update] = {}
-
-    def offer(self, update: Update, now_s: float) -> Update | None:
-        """`update` if it may be sent now (the caller sends it), else None (it is held)."""
-        key = (update.run, update.robot, update.topic)
-        if self._may_send(key, now_s):
-            self._last_sent_s[key] = now_s
-            self._held.pop(key, None)
-            return update
-        self._held[key] = update
-        return None
-
-    def due(self, now_s: float) -> list[Update]:
-        """The held updates whose interval has passed (the caller sends them), in key order."""
-        ready = [key for key in self._held if self._may_send(key, now_s)]
-        for key in ready:
-            self._last_sent_s[key] = now_s
-        return [self._held.pop(key) for key in ready]
-
-    def held(self) -> int:
-        """How many updates are held back."""
-        return len(self._held)
-
-    def _may_send(self, key: ThrottleKey, now_s: float) -> bool:
-        last_s = self._last_sent_s.get(key)
-        return last_s is None or now_s - last_s >= self.min_interval_s
-
-
-# ---------------------------------------------------------------------------- what is known
-
-
-@dataclass
-class RobotRecord:
-    """What is known of one robot: the latest update per topic, its metric samples and poses."""
-
-    latest: dict[str, Update] = field(default_factory=dict)
-    metrics_history: deque[dict[str, Any]] = field(default_factory=deque)
-    trajectory: deque[tuple[int, int]] = field(default_factory=deque)
-
-    @property
-    def t(self) -> int | None:
-        """The latest step any known message of this robot is about."""
-        steps = [step for step in map(_step, self.latest.values()) if step is not None]
-        return max(steps) if steps else None
-
-
-@dataclass
-class RunRecord:
-    """What is known of one run: its world info and its robots."""
-
-    world: Update | None = None
-    robots: dict[str, RobotRecord] = field(default_factory=dict)
-
-
-class ViewState:
-    """Everything the view knows, for `/state` and a new stream's snapshot. Not thread-safe:
-    `WebView` holds its lock around every call."""
-
-    def __init__(self, config: WebConfig = DEFAULT_WEB, followed_run: str | None = None) -> None:
-        self.config = config
-        self.followed_run = followed_run
-        self.runs: OrderedDict[str, RunRecord] = OrderedDict()  # least recently updated first
-
-    def apply(self, update: Update) -> bool:
-        """Take `update` in; False (and nothing changes) when it is older than the known one."""
-        run = self._run(update.run)
-        if update.robot is None:
-            run.world = update
-            return True
-        robot = run.robots.setdefault(update.robot, self._new_robot())
-        known = robot.latest.get(update.topic)
-        if known is not None and _step(update) < _step(known):
-            return False
-        robot.latest[update.topic] = update
-        self._accumulate(robot, update.message)
-        return True
-
-    def snapshot(self) -> dict[str, Any]:
-        """The `/state` document (see the module docstring)."""
-        return {
-            "followed_run": self.followed_run,
-            "runs": {name: self._run_snapshot(run) for name, run in self.runs.items()},
-        }
-
-    def _run(self, name: str) -> RunRecord:
-        if name not in self.runs:
-            self.runs[name] = RunRecord()
-            while len(self.runs) > self.config.max_runs:
-                forgotten, _ = self.runs.popitem(last=False)
-                log.info("forgot run %s (more than %d runs)", forgotten, self.config.max_runs)
-        self.runs.move_to_end(name)
-        return self.runs[name]
-
-    def _new_robot(self) -> RobotRecord:
-        return RobotRecord(
-            metrics_history=deque(maxlen=self.config.max_metric_points),
-            trajectory=deque(maxlen=self.config.max_trajectory_points),
-        )
-
-    @staticmethod
-    def _accumulate(robot: RobotRecord, message: Message) -> None:
-        """Extend the metric history and the trajectory with a new sample or a moved pose."""
-        if isinstance(message, MetricsMessage):
-            history = robot.metrics_history
-            if not history or message.t > history[-1]["t"]:
-                history.append(_ENCODERS[MetricsMessage](message))
-        elif isinstance(message, PoseMessage):
-            cell = (int(message.pose[0]), int(message.pose[1]))
-            if not robot.trajectory or robot.trajectory[-1] != cell:
-                robot.trajectory.append(cell)
-
-    @staticmethod
-    def _run_snapshot(run: RunRecord) -> dict[str, Any]:
-        return {
-            "world": None if run.world is None else encode_update(run.world),
-            "robots": {
-                name: {
-                    "t": robot.t,
-                    "latest": {topic: encode_update(u) for topic, u in robot.latest.items()},
-                    "metrics_history": list(robot.metrics_history),
-                    "trajectory": [list(cell) for cell in robot.trajectory],
-                }
-                for name, robot in sorted(run.robots.items())
-            },
-        }
-
-
-# ---------------------------------------------------------------------------- event clients
-
-
-class EventClient:
-    """The frames waiting for one `/events` stream, filled by `WebView`, drained by its
-    handler thread. Closed when it overflows (a stalled browser) or when the view closes."""
-
-    def __init__(self, max_queued_events: int) -> None:
-        self.max_queued_events = max_queued_events
-        self._frames: deque[bytes] = deque()
-        self._changed = threading.Condition()
-        self.closed = False
-
-    def push(self, frame: bytes) -> bool:
-        """Queue `frame`; False (and the client is closed) when it is closed or too far behind."""
-        with self._changed:
-            if not self.closed and len(self._frames) >= self.max_queued_events:
-                self.closed = True
-            if self.closed:
-                self._changed.notify_all()
-                return False
-            self._frames.append(frame)
-            self._changed.notify_all()
-            return True
-
-    def close(self) -> None:
-        """End the stream: `next_frame` returns None from now on."""
-        with self._changed:
-            self.closed = True
-            self._changed.notify_all()
-
-    def next_frame(self, timeout_s: float) -> bytes | None:
-        """The next frame; KEEPALIVE_FRAME after `timeout_s` without one; None once closed."""
-        with self._changed:
-            self._changed.wait_for(lambda: self._frames or self.closed, timeout_s)
-            if self.closed:
-                return None
-            return self._frames.popleft() if self._frames else KEEPALIVE_FRAME
 
 
 # ---------------------------------------------------------------------------- hosts
