@@ -55,6 +55,10 @@ class FoxgloveServer:
                                     schema.encoding, lambda: schema.data)  # fmt: skip
             channel.log(outgoing.foxglove.encode(), log_time=outgoing.stamp_ns)
 
+    def topics(self) -> list[str]:
+        """The channels made so far, sorted."""
+        return sorted(self._channels)
+
     def close(self) -> None:
         self.server.stop()
 

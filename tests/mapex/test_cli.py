@@ -87,6 +87,16 @@ def test_bad_input_gives_one_line_error(args, message):
 
 
 @pytest.mark.slow  # runs the command in a process of its own
+def test_a_recording_that_exists_is_refused_and_kept(tmp_path):
+    (tmp_path / "run.mcap").write_bytes(b"an older recording")
+    done = run_cli("run", "--no-progress", "--record", str(tmp_path / "run.mcap"))
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    error_lines = [line for line in done.stderr.splitlines() if "error" in line]
+    assert len(error_lines) == 1 and "exists" in error_lines[0]
+    assert (tmp_path / "run.mcap").read_bytes() == b"an older recording"
+
+
+@pytest.mark.slow  # runs the command in a process of its own
 def test_bad_map_file_gives_one_line_error(tmp_path):
     (tmp_path / "occ_map.npy").write_bytes(b"not a numpy file")
     done = run_cli("run", "--no-progress", "--world", str(tmp_path))

@@ -135,14 +135,18 @@ def test_only_the_newest_runs_keep_their_topics():
 def test_the_bridge_survives_malformed_keys_and_follows_a_new_run(ros_router, caplog):
     """A bridge thread follows runs published by hand: a run id that is not one and a
     payload that is not a map are dropped with a log line; a run after the first one gets
-    its own topics."""
+    its own topics; --bridge-keys puts the same CDR on the topic's own key."""
     hub = _ros_peer(ros_router)
     stop = threading.Event()
     config = zenoh.Config.from_json5(
         f'{{mode: "peer", connect: {{endpoints: ["{ros_router}"]}}, '
         'listen: {endpoints: ["tcp/127.0.0.1:0"]}, scouting: {multicast: {enabled: false}}}'
     )
-    bridge = threading.Thread(target=ros2.main, args=(config,), kwargs={"stop": stop})
+    raw = []  # --bridge-keys: plain CDR on the topic's own key (zenoh-bridge-ros2dds)
+    hub.declare_subscriber("mapex/run_b/r0/map", lambda s: raw.append(s.payload.to_bytes()))
+    bridge = threading.Thread(
+        target=ros2.main, args=(config,), kwargs={"stop": stop, "bridge_keys": True}
+    )
     bridge.start()
     try:
         time.sleep(1.0)  # the bridge's subscribers reach the router
@@ -168,6 +172,7 @@ def test_the_bridge_survives_malformed_keys_and_follows_a_new_run(ros_router, ca
         expected = _expected_values(_codes(free_cols=9))
         assert np.array_equal(ros.grid_values_in_map_order(grid), expected)
         late.undeclare()
+        assert raw and raw[-1] == latest[-1]  # the same CDR bytes on the bridge key
     finally:
         stop.set()
         bridge.join(20)
