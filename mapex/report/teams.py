@@ -96,8 +96,7 @@ def plot_teams(
 ) -> None:
     """teams.png: one panel per chosen run, its last snapshot of the observed map with every
     robot's trajectory (circle: start, square: end)."""
-    first = chosen[0][1]
-    rows, cols = first.observed.shape[1:] if first is not None else (1, 1)
+    rows, cols = _map_shape([snaps for _, snaps, _ in chosen])
     wide = cols / rows > config.snapshot_wide_aspect
     layout = (len(chosen), 1) if wide else (1, len(chosen))
     width = config.snapshot_wide_panel_inches if wide else config.curve_panel_inches
@@ -125,6 +124,15 @@ def plot_teams(
     fig.tight_layout()
     fig.savefig(path, dpi=config.dpi)
     plt.close(fig)
+
+
+def _map_shape(snapshots: Sequence[Snapshots | None]) -> tuple[int, int]:
+    """(rows, cols) of the first run with a snapshot; (1, 1) when none has one (runs
+    shorter than the first snapshot step)."""
+    for snaps in snapshots:
+        if snaps is not None and len(snaps.steps):
+            return tuple(snaps.observed.shape[1:])
+    return (1, 1)
 
 
 def _draw_trajectories(ax: plt.Axes, trajectories: list[np.ndarray]) -> None:

@@ -318,6 +318,14 @@ def test_team_runs_get_a_team_table_and_a_figure_of_every_robots_path(tmp_path):
     assert len(paths) == 4 and paths[3].shape == (101, 2) and tuple(paths[3][-1]) == (6, 17)
 
 
+def test_team_runs_shorter_than_any_snapshot_still_get_their_figure(tmp_path):
+    folder = write_team_run(tmp_path / "r", "mapex_team", 2, 0.5)
+    empty = np.zeros(0, np.uint8)  # what mapex.results writes when no snapshot step was reached
+    np.savez_compressed(folder / "snapshots.npz", steps=np.zeros(0, np.int64), observed=empty)
+    files, _ = write_report(load_runs(tmp_path / "r"), tmp_path / "out", warn=lambda _: None)
+    assert is_png(tmp_path / "out" / "teams.png")
+
+
 def test_single_robot_reports_have_no_team_part(results, tmp_path):
     write_report(load_runs(results), tmp_path / "out")
     assert "## Teams" not in (tmp_path / "out" / "report.md").read_text()
