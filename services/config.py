@@ -72,6 +72,8 @@ class Ros2Config:
     volatile_depth: int = 10  # pose and paths
     heartbeat_s: float = 0.5  # sample-miss heartbeat of reliable latched topics (as rmw_zenoh)
     max_runs: int = 8  # the topics of older runs are withdrawn (their tokens undeclared)
+    trajectory_period_s: float = 1.0  # the whole trajectory at most this often per robot
+    # (and once more when the run ends); the pose goes out every step
     default_resolution_m: float = 0.1  # cell size until a run's world_info arrives
 
 

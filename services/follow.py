@@ -56,6 +56,7 @@ MAP_KIND_OF_TOPIC = {
     "prediction/mean": "mean",
     "prediction/variance": "variance",
 }
+FINAL_STATES = ("finished", "failed")  # a robot's run is over once its status says one
 WORLD_INFO_TOPIC = "world_info"  # an Update with robot None carries the run's WorldInfo
 
 log = logging.getLogger("services.follow")

@@ -31,7 +31,7 @@ from mapex.exit_codes import EXIT_USAGE
 from mapex.interop.mcap_file import McapRecording, record_path_problem
 from mapex.interop.ros_messages import MissingExtraError
 from services.config import Ros2Config
-from services.follow import RunFollower, Update
+from services.follow import FINAL_STATES, RunFollower, Update
 from services.keys import is_valid_id
 from services.ros_translate import RunTranslator
 from services.serving import configure_logging, stop_on_signals
@@ -42,7 +42,6 @@ from services.zenoh_config import (
     zenoh_config_from_args,
 )
 
-FINAL_STATES = ("finished", "failed")
 EXIT_NOT_FINISHED = 1
 
 log = logging.getLogger("services.record")

@@ -9,6 +9,7 @@ the first map's shape and `Ros2Config.default_resolution_m`.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import OrderedDict
 from collections.abc import Callable
@@ -16,7 +17,7 @@ from collections.abc import Callable
 from mapex.interop.ros_messages import MapFrame
 from mapex.interop.topics import Outgoing, RunTopics, ros_token
 from services.config import Ros2Config
-from services.follow import Update
+from services.follow import FINAL_STATES, Update
 from services.messages import MapMessage
 
 log = logging.getLogger("services.ros_translate")
@@ -39,6 +40,7 @@ class RunTranslator:
         self.with_foxglove = with_foxglove
         self.runs: OrderedDict[str, RunTopics] = OrderedDict()
         self._frames: dict[str, MapFrame] = {}
+        self._trajectory_sent_s: dict[tuple[str, str], float] = {}
 
     def __call__(self, update: Update) -> None:
         if update.topic == "world_info":
@@ -63,10 +65,23 @@ class RunTranslator:
         if topics is None:
             return []  # no map and no world info of this run yet: no frame to place it in
         if update.topic == "pose":
-            return topics.pose(robot, message.pose, stamp_ns)
+            return topics.pose(robot, message.pose, stamp_ns, self._trajectory_due(update))
         if update.topic == "path":
             return topics.plan(robot, message.cells, stamp_ns)
+        ended = update.topic == "status" and message.state in FINAL_STATES
+        if ended and robot in topics.trajectories:
+            return [topics.trajectory(robot, stamp_ns)]  # the whole trajectory, last
         return []
+
+    def _trajectory_due(self, update: Update) -> bool:
+        """Whether this pose also sends the trajectory: at most once per
+        `trajectory_period_s` per robot (a whole path per step would cost time quadratic in
+        the run's length), and once more when the robot's run ends."""
+        key, now_s = (update.run, update.robot), time.monotonic()
+        if now_s - self._trajectory_sent_s.get(key, -math.inf) < self.config.trajectory_period_s:
+            return False
+        self._trajectory_sent_s[key] = now_s
+        return True
 
     def _run(self, run: str, shape: tuple[int, int]) -> RunTopics:
         if run not in self.runs:

@@ -37,7 +37,7 @@ import zenoh
 from mapex.exit_codes import EXIT_USAGE
 from services.codec import ProtocolError
 from services.config import WatchConfig
-from services.follow import decode_topic
+from services.follow import FINAL_STATES, decode_topic
 from services.keys import (
     ID_MAX_CHARS,
     RESERVED_RUN_IDS,
@@ -67,7 +67,6 @@ from services.zenoh_config import (
 )
 
 EXIT_NOT_FINISHED = 1  # --until-finished, but --timeout-s came first
-FINAL_STATES = ("finished", "failed")
 
 # topic -> (its message type, WatchState field); decoded by services.follow.decode_topic
 WATCHED_TOPICS: dict[str, tuple[type[Message], str]] = {

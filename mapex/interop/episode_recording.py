@@ -1,10 +1,11 @@
 """Record an in-process episode (`python -m mapex run --record run.mcap`) as an MCAP file.
 
 The same topics as the distributed recorder (`services.record`, mapex.interop.topics),
-fed from the explorers after each step instead of from Zenoh: every robot's pose (and
-trajectory) at every step, its planned path when it changes, the ensemble mean after each
-re-plan that predicted, and the observed map every `map_every_steps` steps and at the end
-(a whole map per step would make a 1000-step file of hundreds of MB).
+fed from the explorers after each step instead of from Zenoh: every robot's pose at every
+step, its planned path when it changes, the ensemble mean after each re-plan that
+predicted, and the observed map and the whole trajectory every `map_every_steps` steps and
+at the end (a whole map per step would make a 1000-step file of hundreds of MB, and a
+trajectory per step costs time and space quadratic in the run's length).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from mapex.interop.topics import Outgoing, RunTopics
 class RecordingConfig:
     """What an in-process recording keeps."""
 
-    map_every_steps: int = 10  # observed map at t = 0, k, 2k, ... and at the last step
+    map_every_steps: int = 10  # observed map and trajectory at t = 0, k, 2k, ... and at the end
 
 
 class EpisodeRecording:
@@ -55,8 +56,9 @@ class EpisodeRecording:
         self._last_t, self._explorers = t, explorers
         for k, explorer in enumerate(explorers):
             robot = f"r{k}"
-            self._write(self.topics.pose(robot, tuple(explorer.pose), stamp_ns))
-            if t % self.config.map_every_steps == 0:
+            now = t % self.config.map_every_steps == 0
+            self._write(self.topics.pose(robot, tuple(explorer.pose), stamp_ns, now))
+            if now:
                 self._write(self.topics.observed(robot, explorer.observed, stamp_ns))
             self._plan(k, robot, explorer, stamp_ns)
             self._mean(k, robot, explorer, stamp_ns)
@@ -68,6 +70,7 @@ class EpisodeRecording:
         if self._last_t % self.config.map_every_steps != 0:
             for k, explorer in enumerate(self._explorers):
                 self._write(self.topics.observed(f"r{k}", explorer.observed, stamp_ns))
+                self._write([self.topics.trajectory(f"r{k}", stamp_ns)])
         self.recording.close()
         return self.recording.messages
 

@@ -94,8 +94,11 @@ class RunTopics:
         foxglove = self._fox(fox.probability_grid, probability, stamp_ns)
         return [self._out(robot, "prediction_mean", message, foxglove, stamp_ns)]
 
-    def pose(self, robot: str, cell: tuple[int, int], stamp_ns: int) -> list[Outgoing]:
-        """The pose, and the trajectory with it when the robot moved."""
+    def pose(
+        self, robot: str, cell: tuple[int, int], stamp_ns: int, with_trajectory: bool = True
+    ) -> list[Outgoing]:
+        """The pose, and the trajectory with it when the robot moved (and `with_trajectory`:
+        a recording sends the whole path only now and then, its size grows with the run)."""
         cell = (int(cell[0]), int(cell[1]))
         out = [
             self._out(
@@ -104,10 +107,16 @@ class RunTopics:
             )
         ]  # fmt: skip
         trajectory = self.trajectories.setdefault(robot, [])
-        if not trajectory or trajectory[-1] != cell:
+        moved = not trajectory or trajectory[-1] != cell
+        if moved:
             trajectory.append(cell)
-            out.append(self._path(robot, "trajectory", np.asarray(trajectory), stamp_ns))
+        if moved and with_trajectory:
+            out.append(self.trajectory(robot, stamp_ns))
         return out
+
+    def trajectory(self, robot: str, stamp_ns: int) -> Outgoing:
+        """Every pose of the robot so far, as a path."""
+        return self._path(robot, "trajectory", np.asarray(self.trajectories[robot]), stamp_ns)
 
     def plan(self, robot: str, cells: np.ndarray, stamp_ns: int) -> list[Outgoing]:
         """The planned path (int (k, 2) cells; empty: no goal)."""

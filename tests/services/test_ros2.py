@@ -121,6 +121,18 @@ def test_maps_poses_and_paths_become_their_topics_in_the_worlds_frame():
     assert sent[1].message.pose.position.x == pytest.approx(3.5 * 0.05)
 
 
+def test_the_trajectory_goes_out_now_and_then_and_whole_at_the_end():
+    sent = []
+    translate = RunTranslator(sent.append, Ros2Config(trajectory_period_s=3600.0))
+    translate(_update("r", "observed_map", MapMessage(0, "observed", _codes())))
+    for t, cell in enumerate([(3, 3), (3, 4), (3, 5)], start=1):
+        translate(_update("r", "pose", PoseMessage(t, cell)))
+    translate(_update("r", "status", StatusMessage(3, "finished")))
+    names = [o.topic.rsplit("/", 1)[1] for o in sent]
+    assert names == ["map", "pose", "trajectory", "pose", "pose", "trajectory"]
+    assert len(sent[-1].message.poses) == 3  # every pose, though sent once in between
+
+
 def test_only_the_newest_runs_keep_their_topics():
     forgotten = []
     translate = RunTranslator(lambda _: None, Ros2Config(max_runs=2), forgotten.append)
