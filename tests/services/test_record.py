@@ -9,9 +9,18 @@ import pytest
 
 pytest.importorskip("rosbags", reason="the ros extra is not installed")
 
-from mapex.interop.ros_messages import MapFrame  # noqa: E402
+import time  # noqa: E402
+
+import zenoh  # noqa: E402
+from mcap_files import mcap_counts, ros_messages_in  # noqa: E402
+from service_processes import ServiceProcesses, free_loopback_port  # noqa: E402
+
+from mapex.interop.ros_messages import MapFrame, grid_values_in_map_order  # noqa: E402
 from mapex.interop.topics import RunTopics  # noqa: E402
 from services import record  # noqa: E402
+from services.messages import MapMessage, PoseMessage, StatusMessage  # noqa: E402
+
+RECORDER_DEADLINE_S = 60.0  # a cold interpreter on a shared 2-core machine
 
 
 @pytest.mark.parametrize(
@@ -52,3 +61,38 @@ def test_the_foxglove_server_serves_the_ros_and_foxglove_channels():
         ]  # fmt: skip
     finally:
         server.close()
+
+
+@pytest.mark.slow  # a process of its own
+def test_the_recorder_process_records_a_run_until_it_finishes(tmp_path):
+    """services.record --until-finished on a hub where a run is published by hand: it exits
+    0 once the run's robot says finished, and the file holds its map and pose."""
+    hub = f"tcp/127.0.0.1:{free_loopback_port()}"
+    config = zenoh.Config.from_json5(
+        f'{{mode: "router", listen: {{endpoints: ["{hub}"]}}, '
+        "scouting: {multicast: {enabled: false}}}"
+    )
+    session = zenoh.open(config)
+    processes = ServiceProcesses(hub, tmp_path)
+    out = tmp_path / "run.mcap"
+    try:
+        recorder = processes.spawn(
+            "record", "services.record", "--out", str(out), "--until-finished",
+            "--timeout-s", str(RECORDER_DEADLINE_S),
+        )  # fmt: skip
+        codes = np.ones((6, 8), np.uint8)
+        codes[2:4, 2:6] = 0
+        deadline = time.monotonic() + RECORDER_DEADLINE_S
+        while recorder.poll() is None and time.monotonic() < deadline:
+            session.put("mapex/@v1/demo/r0/observed_map", MapMessage(7, "observed", codes).encode())
+            session.put("mapex/@v1/demo/r0/pose", PoseMessage(7, (2, 3)).encode())
+            session.put("mapex/@v1/demo/r0/status", StatusMessage(7, "finished").encode())
+            time.sleep(0.5)
+        assert recorder.wait(RECORDER_DEADLINE_S) == 0, processes.log_of("record")
+    finally:
+        processes.kill_all()
+        session.close()
+    counts = mcap_counts(out)
+    assert counts["/mapex/demo/r0/map"] >= 1 and counts["/mapex/demo/r0/pose"] >= 1
+    grid = ros_messages_in(out, "/mapex/demo/r0/map")[-1]
+    assert np.array_equal(grid_values_in_map_order(grid) == 0, codes == 0)
