@@ -33,6 +33,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, replace
+from typing import Any
 
 import zenoh
 
@@ -61,7 +62,7 @@ log = logging.getLogger("services.ros2")
 class _Publisher:
     """One ROS topic's Zenoh publisher(s), liveliness token, gid and sequence number."""
 
-    publisher: zenoh.Publisher | object
+    publisher: Any  # a zenoh.Publisher, or a zenoh.ext.AdvancedPublisher for latched topics
     token: zenoh.LivelinessToken
     gid: bytes
     bridge_publisher: zenoh.Publisher | None
