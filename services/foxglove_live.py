@@ -14,8 +14,8 @@ from typing import Any
 
 import zenoh
 
-from mapex.interop.ros_messages import MissingExtraError, message_definition, serialize
-from mapex.interop.topics import Outgoing, foxglove_topic
+from mapex.interop.ros_messages import MissingExtraError
+from mapex.interop.topics import ChannelMessage, Outgoing, channel_messages
 from services.config import Ros2Config
 from services.follow import RunFollower
 from services.ros_translate import RunTranslator
@@ -46,14 +46,8 @@ class FoxgloveServer:
 
     def write(self, outgoing: Outgoing) -> None:
         """Log `outgoing` as CDR on its ROS topic and as protobuf on its Foxglove topic."""
-        self._channel(outgoing.topic, "cdr", outgoing.ros_type, "ros2msg",
-                      lambda: message_definition(outgoing.ros_type).encode()
-                      ).log(serialize(outgoing.message), log_time=outgoing.stamp_ns)  # fmt: skip
-        if outgoing.foxglove is not None:
-            schema = outgoing.foxglove.get_schema()
-            channel = self._channel(foxglove_topic(outgoing.topic), schema.encoding, schema.name,
-                                    schema.encoding, lambda: schema.data)  # fmt: skip
-            channel.log(outgoing.foxglove.encode(), log_time=outgoing.stamp_ns)
+        for message in channel_messages(outgoing):
+            self._channel(message).log(message.data, log_time=outgoing.stamp_ns)
 
     def topics(self) -> list[str]:
         """The channels made so far, sorted."""
@@ -62,13 +56,15 @@ class FoxgloveServer:
     def close(self) -> None:
         self.server.stop()
 
-    def _channel(self, topic: str, encoding: str, name: str, schema_encoding: str, data) -> Any:
-        if topic not in self._channels:
-            schema = self._foxglove.Schema(name=name, encoding=schema_encoding, data=data())
-            self._channels[topic] = self._foxglove.Channel(
-                topic, schema=schema, message_encoding=encoding, context=self.context
-            )
-        return self._channels[topic]
+    def _channel(self, message: ChannelMessage) -> Any:
+        if message.topic not in self._channels:
+            name, encoding, data = message.schema()
+            schema = self._foxglove.Schema(name=name, encoding=encoding, data=data)
+            self._channels[message.topic] = self._foxglove.Channel(
+                message.topic, schema=schema, message_encoding=message.message_encoding,
+                context=self.context,
+            )  # fmt: skip
+        return self._channels[message.topic]
 
 
 class FoxgloveLive:

@@ -198,6 +198,16 @@ def _parse_alive(chunks: list[str]) -> AliveKey | None:
     return None
 
 
+def run_id_problem(run: str, flag: str = "--run") -> str | None:
+    """Why `run` cannot name a run, as a one-line message naming `flag`; None when it can."""
+    if _is_run_id(run):
+        return None
+    return (
+        f"{flag} {run!r} must match [a-z0-9_-]{{1,{ID_MAX_CHARS}}} "
+        f"and not be {' or '.join(sorted(RESERVED_RUN_IDS))}"
+    )
+
+
 def _is_run_id(value: str) -> bool:
     return is_valid_id(value) and value not in RESERVED_RUN_IDS
 

@@ -23,7 +23,8 @@ import zenoh
 from mapex.config import ConfigError
 from mapex.interop.mcap_file import record_path_problem
 from services.config import DEFAULT_WEB, WebConfig
-from services.foxglove_live import FOXGLOVE_DEFAULT_PORT
+from services.foxglove_live import FOXGLOVE_DEFAULT_PORT, FoxgloveLive
+from services.record import RunRecorder
 from services.supervisor import ProcessSpec
 from services.web import WebView
 
@@ -88,9 +89,6 @@ class OutsideTools:
     `session`; a port that is taken is an OSError (one line) before any child starts."""
 
     def __init__(self, session: zenoh.Session, args: argparse.Namespace) -> None:
-        from services.foxglove_live import FoxgloveLive
-        from services.record import RunRecorder
-
         self.recorder = self.foxglove = self.web = None
         try:
             self.recorder = RunRecorder(session, args.record) if args.record else None

@@ -32,9 +32,9 @@ from mapex.interop.mcap_file import McapRecording, record_path_problem
 from mapex.interop.ros_messages import MissingExtraError
 from services.config import Ros2Config
 from services.follow import FINAL_STATES, RunFollower, Update
-from services.keys import is_valid_id
+from services.keys import run_id_problem
 from services.ros_translate import RunTranslator
-from services.serving import configure_logging, stop_on_signals
+from services.serving import configure_logging, positive_number, stop_on_signals
 from services.zenoh_config import (
     ZenohConfigError,
     add_zenoh_arguments,
@@ -138,7 +138,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--until-finished", action="store_true",
         help="stop once the followed runs' robots said finished or failed",
     )  # fmt: skip
-    parser.add_argument("--timeout-s", type=float, default=None, help="stop after this long")
+    parser.add_argument(
+        "--timeout-s", type=positive_number("of seconds"), default=None,
+        help="stop after this many seconds",
+    )  # fmt: skip
     add_zenoh_arguments(parser)
     return parser
 
@@ -146,12 +149,10 @@ def build_parser() -> argparse.ArgumentParser:
 def run_cli(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.run is not None and not is_valid_id(args.run):
-        parser.error(f"--run {args.run!r} is not a run id ([a-z0-9_-])")
+    if args.run is not None and (problem := run_id_problem(args.run)) is not None:
+        parser.error(problem)
     if (problem := record_path_problem(args.out)) is not None:
         parser.error(f"--out {problem}")
-    if args.timeout_s is not None and not args.timeout_s > 0:
-        parser.error(f"--timeout-s must be above 0 (got {args.timeout_s})")
     configure_logging(f"record[{args.run or '*'}]")
     stop = stop_on_signals()
     try:

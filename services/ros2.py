@@ -44,7 +44,7 @@ from mapex.interop.topics import Outgoing
 from services.codec import DEFAULT_SERVICES
 from services.config import Ros2Config
 from services.follow import RunFollower
-from services.keys import is_valid_id
+from services.keys import run_id_problem
 from services.ros_translate import RunTranslator
 from services.serving import configure_logging, stop_on_signals
 from services.zenoh_config import (
@@ -220,8 +220,8 @@ def build_parser() -> argparse.ArgumentParser:
 def run_cli(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.run is not None and not is_valid_id(args.run):
-        parser.error(f"--run {args.run!r} is not a run id ([a-z0-9_-])")
+    if args.run is not None and (problem := run_id_problem(args.run)) is not None:
+        parser.error(problem)
     if not 0 <= args.domain <= 232:
         parser.error(f"--domain {args.domain} is not a ROS 2 domain id (0-232)")
     configure_logging(f"ros2[{args.run or '*'}]")

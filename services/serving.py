@@ -8,8 +8,10 @@ how long its query waited in the queue, so a worker can drop one its querier gav
 
 from __future__ import annotations
 
+import argparse
 import ctypes
 import logging
+import math
 import os
 import queue
 import signal
@@ -147,3 +149,19 @@ def return_freed_memory(threshold_bytes: int = 4 * 2**20) -> bool:
         )
     except (OSError, AttributeError):
         return False
+
+
+def positive_number(unit: str) -> Callable[[str], float]:
+    """An argparse type: a finite number above 0, `unit` naming it in the error
+    ("'0' is not a positive number of seconds")."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value > 0):
+            raise argparse.ArgumentTypeError(f"{text!r} is not a positive number {unit}")
+        return value
+
+    return parse

@@ -31,7 +31,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
 import zenoh
 
 from mapex.exit_codes import EXIT_USAGE
@@ -40,12 +39,12 @@ from services.config import WatchConfig
 from services.follow import FINAL_STATES, decode_topic
 from services.keys import (
     ID_MAX_CHARS,
-    RESERVED_RUN_IDS,
     RobotKey,
     is_valid_id,
     parse_key,
     robot_key,
     robot_key_pattern,
+    run_id_problem,
 )
 from services.messages import (
     FrontiersMessage,
@@ -57,7 +56,7 @@ from services.messages import (
     PoseMessage,
     StatusMessage,
 )
-from services.serving import configure_logging, stop_on_signals
+from services.serving import configure_logging, positive_number, stop_on_signals
 from services.watch_render import DEFAULT_WATCH, FrameReel, render_frame, write_atomic
 from services.zenoh_config import (
     ZenohConfigError,
@@ -425,7 +424,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--gif", type=Path, default=None, help="write an animated GIF on exit")
     parser.add_argument(
         "--every-s",
-        type=_positive_seconds,
+        type=positive_number("of seconds"),
         default=DEFAULT_WATCH.every_s,
         help="render at most this often, in seconds (default: %(default)s)",
     )
@@ -436,7 +435,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--timeout-s",
-        type=_positive_seconds,
+        type=positive_number("of seconds"),
         default=None,
         help="stop after this many seconds (exit 1 if --until-finished and not finished)",
     )
@@ -473,24 +472,10 @@ def run_cli(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _positive_seconds(text: str) -> float:
-    """argparse type of a duration: a finite number of seconds above 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not (np.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
-    return value
-
-
 def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """argparse-style one-line errors (exit 2) for flag values argparse cannot check itself."""
-    if not is_valid_id(args.run) or args.run in RESERVED_RUN_IDS:
-        parser.error(
-            f"--run {args.run!r} must match [a-z0-9_-]{{1,{ID_MAX_CHARS}}} "
-            f"and not be {' or '.join(sorted(RESERVED_RUN_IDS))}"
-        )
+    if (problem := run_id_problem(args.run)) is not None:
+        parser.error(problem)
     if not is_valid_id(args.robot):
         parser.error(f"--robot {args.robot!r} must match [a-z0-9_-]{{1,{ID_MAX_CHARS}}}")
     for flag, path in (("--png", args.png), ("--gif", args.gif)):

@@ -79,7 +79,6 @@ import argparse
 import ipaddress
 import json
 import logging
-import math
 import socket
 import socketserver
 import sys
@@ -98,8 +97,8 @@ import zenoh
 from mapex.exit_codes import EXIT_USAGE
 from services.config import DEFAULT_WEB, WebConfig
 from services.follow import MAP_KIND_OF_TOPIC, RunFollower, Update
-from services.keys import ID_MAX_CHARS, RESERVED_RUN_IDS, is_valid_id
-from services.serving import configure_logging, stop_on_signals, wait_for
+from services.keys import run_id_problem
+from services.serving import configure_logging, positive_number, stop_on_signals, wait_for
 from services.web_state import (
     EventClient,
     MapThrottle,
@@ -451,7 +450,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--map-events-per-s",
-        type=_positive_rate,
+        type=positive_number("per second"),
         default=DEFAULT_WEB.map_events_per_s,
         help="maps sent per second per robot and map kind, at most (default: %(default)s)",
     )
@@ -472,10 +471,7 @@ def run_cli(argv: list[str] | None = None) -> int:
     )
     try:
         main(zenoh_config_from_args(args), args.run, args.host, args.port, stop, web)
-    except ZenohConfigError as error:
-        log.error("%s", error)
-        return EXIT_USAGE
-    except OSError as error:
+    except (ZenohConfigError, OSError) as error:
         log.error("%s", error)
         return EXIT_USAGE
     return 0
@@ -492,24 +488,10 @@ def _port(text: str) -> int:
     return value
 
 
-def _positive_rate(text: str) -> float:
-    """argparse type of a rate: a finite number of events per second above 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number per second")
-    return value
-
-
 def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """argparse-style one-line errors (exit 2) for flag values argparse cannot check itself."""
-    if args.run is not None and (not is_valid_id(args.run) or args.run in RESERVED_RUN_IDS):
-        parser.error(
-            f"--run {args.run!r} must match [a-z0-9_-]{{1,{ID_MAX_CHARS}}} "
-            f"and not be {' or '.join(sorted(RESERVED_RUN_IDS))}"
-        )
+    if args.run is not None and (problem := run_id_problem(args.run)) is not None:
+        parser.error(problem)
     try:
         check_host(args.host, args.allow_remote)
     except ValueError as error:

@@ -41,12 +41,10 @@ from mapex.worlds.starts import parse_start, start_cell
 from services.codec import DEFAULT_SERVICES, Payload, ProtocolError
 from services.config import ServicesConfig
 from services.keys import (
-    ID_MAX_CHARS,
-    RESERVED_RUN_IDS,
     alive_world_key,
-    is_valid_id,
     robot_id,
     robot_key,
+    run_id_problem,
     run_key,
 )
 from services.messages import (
@@ -358,11 +356,8 @@ def _check_flags(
     parser: argparse.ArgumentParser, args: argparse.Namespace, starts: list[StartSpec]
 ) -> None:
     """argparse-style one-line errors (exit 2) for flag values argparse cannot check itself."""
-    if not is_valid_id(args.run) or args.run in RESERVED_RUN_IDS:
-        parser.error(
-            f"--run {args.run!r} must match [a-z0-9_-]{{1,{ID_MAX_CHARS}}} "
-            f"and not be {' or '.join(sorted(RESERVED_RUN_IDS))}"
-        )
+    if (problem := run_id_problem(args.run)) is not None:
+        parser.error(problem)
     if args.robots < 1:
         parser.error(f"--robots must be at least 1, got {args.robots}")
     if len(starts) != args.robots:

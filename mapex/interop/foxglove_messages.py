@@ -17,6 +17,7 @@ from mapex.grid import observed_to_probability
 from mapex.interop.ros_messages import MAP_FRAME, MapFrame, MissingExtraError
 
 FOXGLOVE_TYPES = ("foxglove.Grid", "foxglove.PoseInFrame", "foxglove.PosesInFrame")
+FOXGLOVE_ENCODING = "protobuf"  # how the SDK encodes its schemas' messages
 
 
 def foxglove_messages() -> Any:

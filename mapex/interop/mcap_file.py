@@ -11,10 +11,9 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
 
-from mapex.interop.ros_messages import MissingExtraError, message_definition, serialize, type_hash
-from mapex.interop.topics import Outgoing, foxglove_topic
+from mapex.interop.ros_messages import MissingExtraError, type_hash
+from mapex.interop.topics import ChannelMessage, Outgoing, channel_messages
 
 PROFILE = "ros2"
 ROS_DISTRO = "jazzy"
@@ -69,11 +68,8 @@ class McapRecording:
 
     def write(self, outgoing: Outgoing) -> None:
         """Record one message on its ROS channel and, if present, its Foxglove channel."""
-        channel = self._ros_channel(outgoing)
-        self._add(channel, serialize(outgoing.message), outgoing.stamp_ns)
-        if outgoing.foxglove is not None:
-            channel = self._foxglove_channel(outgoing)
-            self._add(channel, outgoing.foxglove.encode(), outgoing.stamp_ns)
+        for message in channel_messages(outgoing):
+            self._add(self._channel(message), message.data, outgoing.stamp_ns)
 
     def close(self) -> None:
         """Finish the file (summary and indexes) and give it its name."""
@@ -89,29 +85,20 @@ class McapRecording:
         self._writer.add_message(channel, stamp_ns, data, stamp_ns, sequence)
         self.messages += 1
 
-    def _ros_channel(self, outgoing: Outgoing) -> int:
-        if outgoing.topic not in self._channels:
-            schema = self._schema(outgoing.ros_type, "ros2msg", message_definition)
-            metadata = {
-                "offered_qos_profiles": offered_qos(outgoing.latched),
-                "topic_type_hash": type_hash(outgoing.ros_type),
-            }
-            self._channels[outgoing.topic] = self._writer.register_channel(
-                outgoing.topic, "cdr", schema, metadata
+    def _channel(self, message: ChannelMessage) -> int:
+        """The channel of `message`'s topic, registered (with its schema) on first use; ROS
+        channels carry rosbag2's metadata."""
+        if message.topic not in self._channels:
+            name, encoding, data = message.schema()
+            if (name, encoding) not in self._schemas:
+                self._schemas[name, encoding] = self._writer.register_schema(name, encoding, data)
+            metadata = {}
+            if message.is_ros:
+                metadata = {
+                    "offered_qos_profiles": offered_qos(message.outgoing.latched),
+                    "topic_type_hash": type_hash(message.outgoing.ros_type),
+                }
+            self._channels[message.topic] = self._writer.register_channel(
+                message.topic, message.message_encoding, self._schemas[name, encoding], metadata
             )
-        return self._channels[outgoing.topic]
-
-    def _foxglove_channel(self, outgoing: Outgoing) -> int:
-        topic = foxglove_topic(outgoing.topic)
-        if topic not in self._channels:
-            schema_of = outgoing.foxglove.get_schema()
-            schema = self._schema(schema_of.name, schema_of.encoding, lambda _: schema_of.data)
-            self._channels[topic] = self._writer.register_channel(topic, schema_of.encoding, schema)
-        return self._channels[topic]
-
-    def _schema(self, name: str, encoding: str, data_of: Any) -> int:
-        if (name, encoding) not in self._schemas:
-            data = data_of(name)
-            data = data.encode() if isinstance(data, str) else bytes(data)
-            self._schemas[name, encoding] = self._writer.register_schema(name, encoding, data)
-        return self._schemas[name, encoding]
+        return self._channels[message.topic]

@@ -19,6 +19,7 @@ Maps are latched (transient local, the last one kept for late subscribers).
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -28,6 +29,7 @@ from mapex.interop import foxglove_messages as fox
 from mapex.interop import ros_messages as ros
 from mapex.interop.ros_messages import MapFrame
 
+CDR_ENCODING, ROS2MSG_ENCODING = "cdr", "ros2msg"  # ROS 2 messages and their schemas
 TOPIC_ROOT = "mapex"
 FOXGLOVE_ROOT = "foxglove"
 # name -> (ROS type, latched)
@@ -71,6 +73,50 @@ class Outgoing:
     foxglove: Any | None
     latched: bool
     stamp_ns: int
+
+
+@dataclass(frozen=True)
+class ChannelMessage:
+    """One encoded message on one channel of a recording or a Foxglove server: the ROS
+    topic's CDR (schema: the .msg text, encoding ros2msg) or the Foxglove topic's protobuf.
+    `schema` gives (name, encoding, data); it is called only when the channel is new."""
+
+    topic: str
+    message_encoding: str
+    schema: Callable[[], tuple[str, str, bytes]]
+    data: bytes
+    outgoing: Outgoing
+
+    @property
+    def is_ros(self) -> bool:
+        return self.message_encoding == CDR_ENCODING
+
+
+def channel_messages(outgoing: Outgoing) -> list[ChannelMessage]:
+    """`outgoing` as its ROS channel's message and, with a Foxglove message, its Foxglove
+    channel's (the one encoding the MCAP recording and the Foxglove server share)."""
+    ros_type = outgoing.ros_type
+    messages = [
+        ChannelMessage(
+            outgoing.topic, CDR_ENCODING,
+            lambda: (ros_type, ROS2MSG_ENCODING, ros.message_definition(ros_type).encode()),
+            ros.serialize(outgoing.message), outgoing,
+        )
+    ]  # fmt: skip
+    if outgoing.foxglove is not None:
+        foxglove = outgoing.foxglove
+
+        def foxglove_schema() -> tuple[str, str, bytes]:
+            schema = foxglove.get_schema()
+            return schema.name, schema.encoding, bytes(schema.data)
+
+        messages.append(
+            ChannelMessage(
+                foxglove_topic(outgoing.topic), fox.FOXGLOVE_ENCODING, foxglove_schema,
+                foxglove.encode(), outgoing,
+            )
+        )  # fmt: skip
+    return messages
 
 
 @dataclass
