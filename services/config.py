@@ -75,6 +75,8 @@ class Ros2Config:
     trajectory_period_s: float = 1.0  # the whole trajectory at most this often per robot
     # (and once more when the run ends); the pose goes out every step
     default_resolution_m: float = 0.1  # cell size until a run's world_info arrives
+    settle_s: float = 0.5  # a recording goes on this long after a run's final status: Zenoh
+    # orders samples per key only, so the last maps and poses may still be on their way
 
 
 @dataclass(frozen=True)

@@ -54,10 +54,9 @@ class RunRecorder:
         self, session: zenoh.Session, path: Path, run: str | None = None,
         config: Ros2Config | None = None,
     ) -> None:  # fmt: skip
+        self.config = config or Ros2Config()
         self.recording = McapRecording(path)
-        self._translate = RunTranslator(
-            self.recording.write, config or Ros2Config(), with_foxglove=True
-        )
+        self._translate = RunTranslator(self.recording.write, self.config, with_foxglove=True)
         self._states: dict[str, dict[str, str]] = {}  # run -> robot -> latest status state
         self._changed = threading.Condition()
         self.follower = RunFollower(session, self._on_update, run)
@@ -76,9 +75,13 @@ class RunRecorder:
             return self._finished(runs)
 
     def wait_finished(self, runs: Collection[str] | None, timeout_s: float) -> bool:
-        """Wait until `finished(runs)`, at most `timeout_s`; whether it is."""
+        """Wait until `finished(runs)`, at most `timeout_s`, then `settle_s` for the last
+        samples of other keys; whether it is."""
         with self._changed:
-            return self._changed.wait_for(lambda: self._finished(runs), timeout_s)
+            done = self._changed.wait_for(lambda: self._finished(runs), timeout_s)
+        if done:
+            time.sleep(self.config.settle_s)
+        return done
 
     def close(self) -> int:
         """Stop following, write what is queued, finish the file; the messages written."""
@@ -114,6 +117,7 @@ def main(
         try:
             while not stop.is_set():
                 if until_finished and recorder.finished([run] if run else None):
+                    stop.wait(recorder.config.settle_s)  # the other keys' last samples
                     break
                 if deadline_s is not None and time.monotonic() >= deadline_s:
                     break

@@ -3,7 +3,9 @@
 The one translation `services.ros2` (live, over rmw_zenoh) and `services.record` (MCAP)
 share: maps, poses and paths become `mapex.interop.topics.Outgoing` messages in the run's
 `map` frame, placed by the run's world info (shape, resolution) or, until it arrives, by
-the first map's shape and `Ros2Config.default_resolution_m`.
+the first map's shape and `Ros2Config.default_resolution_m`. Zenoh orders samples per key
+only, so a pose, path or status may arrive before the run's first map or world info: the
+newest of each per robot is held until the run has a frame, then sent.
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ class RunTranslator:
         self.runs: OrderedDict[str, RunTopics] = OrderedDict()
         self._frames: dict[str, MapFrame] = {}
         self._trajectory_sent_s: dict[tuple[str, str], float] = {}
+        # run -> (robot, topic) -> newest update that came before the run had a frame
+        self._held: dict[str, dict[tuple[str | None, str], Update]] = {}
 
     def __call__(self, update: Update) -> None:
         if update.topic == "world_info":
@@ -48,9 +52,26 @@ class RunTranslator:
             self._frames[update.run] = MapFrame(*info.shape, info.resolution_m)
             if update.run in self.runs:
                 self.runs[update.run].frame = self._frames[update.run]
+            else:
+                self._run(update.run, info.shape)
+            self._send_held(update.run)
             return
+        if not isinstance(update.message, MapMessage) and update.run not in self.runs:
+            self._hold(update)
+            return  # no map and no world info of this run yet: no frame to place it in
         for outgoing in self._messages(update):
             self.send(outgoing)
+        self._send_held(update.run)
+
+    def _hold(self, update: Update) -> None:
+        self._held.setdefault(update.run, {})[(update.robot, update.topic)] = update
+        while len(self._held) > self.config.max_runs:  # runs that never show a map
+            self._held.pop(next(iter(self._held)))
+
+    def _send_held(self, run: str) -> None:
+        for update in self._held.pop(run, {}).values():
+            for outgoing in self._messages(update):
+                self.send(outgoing)
 
     def _messages(self, update: Update) -> list[Outgoing]:
         message, stamp_ns, robot = update.message, time.time_ns(), update.robot
@@ -61,9 +82,7 @@ class RunTranslator:
             if update.topic == "prediction/mean":
                 return topics.mean(robot, message.probabilities(), stamp_ns)
             return []
-        topics = self.runs.get(update.run)
-        if topics is None:
-            return []  # no map and no world info of this run yet: no frame to place it in
+        topics = self.runs[update.run]
         if update.topic == "pose":
             return topics.pose(robot, message.pose, stamp_ns, self._trajectory_due(update))
         if update.topic == "path":

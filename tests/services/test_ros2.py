@@ -104,7 +104,6 @@ def _update(run, topic, message, robot="r0"):
 def test_maps_poses_and_paths_become_their_topics_in_the_worlds_frame():
     sent = []
     translate = RunTranslator(sent.append, Ros2Config())
-    translate(_update("run-a", "pose", PoseMessage(0, (3, 3))))  # no frame yet: dropped
     info = WorldInfo("w", (8, 12), 0.05, np.zeros((1, 2), int))
     translate(Update("run-a", None, "world_info", info))
     translate(_update("run-a", "observed_map", MapMessage(1, "observed", _codes())))
@@ -119,6 +118,37 @@ def test_maps_poses_and_paths_become_their_topics_in_the_worlds_frame():
     assert grid.info.resolution == pytest.approx(0.05) and sent[0].latched
     assert np.array_equal(ros.grid_values_in_map_order(grid), _expected_values(_codes()))
     assert sent[1].message.pose.position.x == pytest.approx(3.5 * 0.05)
+
+
+@pytest.mark.parametrize("frame_from", ["observed_map", "world_info"])
+def test_a_pose_before_the_runs_first_frame_is_held_until_there_is_one(frame_from):
+    """Zenoh orders samples per key only: a pose and a path that beat the run's first map
+    (or world info) are sent, the newest of each, once the run can be placed."""
+    sent = []
+    translate = RunTranslator(sent.append, Ros2Config())
+    translate(_update("run-a", "pose", PoseMessage(0, (2, 2))))
+    translate(_update("run-a", "pose", PoseMessage(1, (3, 3))))
+    translate(_update("run-a", "path", PathMessage(1, np.array([[3, 3], [3, 4]]))))
+    assert sent == []
+    if frame_from == "observed_map":
+        translate(_update("run-a", "observed_map", MapMessage(1, "observed", _codes())))
+    else:
+        info = WorldInfo("w", (8, 12), 0.05, np.zeros((1, 2), int))
+        translate(Update("run-a", None, "world_info", info))
+    names = [o.topic.rsplit("/", 1)[1] for o in sent]
+    assert names == ["map", "pose", "trajectory", "plan"][frame_from == "world_info" :]
+    pose = next(o for o in sent if o.topic.endswith("/pose")).message
+    resolution_m = 0.05 if frame_from == "world_info" else Ros2Config().default_resolution_m
+    assert pose.pose.position.x == pytest.approx(3.5 * resolution_m)
+
+
+def test_held_updates_are_kept_for_the_newest_runs_only():
+    sent = []
+    translate = RunTranslator(sent.append, Ros2Config(max_runs=2))
+    for run in ("a", "b", "c"):
+        translate(_update(run, "pose", PoseMessage(0, (2, 2))))
+    translate(_update("a", "observed_map", MapMessage(0, "observed", _codes())))
+    assert [o.topic for o in sent] == ["/mapex/a/r0/map"]  # a's pose went with the cap
 
 
 def test_the_trajectory_goes_out_now_and_then_and_whole_at_the_end():
