@@ -169,9 +169,14 @@ class TeamConfig:
     # every k-th cell of its path to the goal (0: the goal's visible set only, issue #41's
     # first definition; 10 lowers two robots' overlap 0.720 -> 0.688, docs/results/teams.md)
     claim_path_every_cells: int = 10
+    # the team predicts on its map as it stood at the last multiple of this many steps, once
+    # per such epoch for every robot re-planning in it (cells observed since are copied
+    # through); 1: each re-plan predicts on the current map, as single-robot `mapex`
+    prediction_epoch_steps: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("spacing_cells", "goal_exclusion_cells", "claim_conflict_cells"):
+        names = ("spacing_cells", "goal_exclusion_cells", "claim_conflict_cells")
+        for name in (*names, "prediction_epoch_steps"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"team.{name} must be >= 1, got {getattr(self, name)}")
         if self.claim_path_every_cells < 0:

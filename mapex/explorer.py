@@ -83,9 +83,10 @@ class Explorer:
         self.moved_since_goal = False
         self.stats = ExplorerStats()
 
-    def observe(self, scan: Scan) -> None:
-        """Integrate a LiDAR scan into O_t; the scan's pose is the robot's pose."""
-        integrate_scan(self.observed, scan, self.config.sensor)
+    def observe(self, scan: Scan, seen: np.ndarray | None = None) -> None:
+        """Integrate a LiDAR scan into O_t (and mark its cells in the bool map `seen`, when
+        given); the scan's pose is the robot's pose."""
+        integrate_scan(self.observed, scan, self.config.sensor, seen)
         self.pose = np.asarray(scan.pose, dtype=np.int64)
         self.scanned_from[self.pose[0], self.pose[1]] = True
 

@@ -56,14 +56,23 @@ def cast_scan(occupancy: np.ndarray, pose: Cell, config: SensorConfig) -> Scan:
     return _cast(occupancy, np.empty((0, 0), dtype=np.uint8), False, pose, config)
 
 
-def integrate_scan(observed: np.ndarray, scan: Scan, config: SensorConfig) -> None:
+def integrate_scan(
+    observed: np.ndarray, scan: Scan, config: SensorConfig, seen: np.ndarray | None = None
+) -> None:
     """Mark the cells of `scan` in `observed` (uint8 codes, in place).
 
     Every walked cell becomes FREE except the last cell of a hit ray, which becomes OCCUPIED;
-    an OCCUPIED cell is never turned FREE. A scan that does not fit this map and config raises
-    ValueError (the map may then be partly updated).
+    an OCCUPIED cell is never turned FREE. `seen` (bool, the map's shape), when given, gets
+    every walked cell set True in the same pass (a team's record of who saw what). A scan
+    that does not fit this map and config raises ValueError (the map may then be partly
+    updated).
     """
     _check_observed(observed, observed.shape)
+    mark_seen = seen is not None
+    if not mark_seen:
+        seen = np.zeros((0, 0), dtype=np.bool_)
+    elif seen.dtype != np.bool_ or seen.shape != observed.shape:
+        raise ValueError(f"seen must be bool {observed.shape}, got {seen.dtype} {seen.shape}")
     row, col = _checked_pose(observed, scan.pose)
     _check_config(config)
     if scan.n_rays != config.n_rays:
@@ -72,8 +81,9 @@ def integrate_scan(observed: np.ndarray, scan: Scan, config: SensorConfig) -> No
         raise ValueError("every scan ray walks at least its start cell (n_cells >= 1)")
     directions = ray_directions(config.n_rays)
     bad_rays = _retrace_kernel(
-        observed, row, col, directions, config.range_cells, scan.n_cells, scan.hit
-    )
+        observed, seen, mark_seen, row, col, directions, config.range_cells, scan.n_cells,
+        scan.hit,
+    )  # fmt: skip
     if bad_rays:
         raise ValueError(f"{bad_rays} scan rays run past the range or the map border")
 
@@ -164,8 +174,11 @@ def _scan_kernel(occupancy, observed, integrate, row0, col0, directions, range_c
 
 
 @njit(cache=True)
-def _retrace_kernel(observed, row0, col0, directions, range_cells, n_cells, hit) -> int:
-    """Mark each ray's n_cells cells on `observed`; return how many rays did not fit."""
+def _retrace_kernel(
+    observed, seen, mark_seen, row0, col0, directions, range_cells, n_cells, hit
+) -> int:
+    """Mark each ray's n_cells cells on `observed` (and `seen` when `mark_seen`); return how
+    many rays did not fit."""
     n_rows, n_cols = observed.shape
     bad_rays = 0
     for k in range(directions.shape[0]):
@@ -178,6 +191,8 @@ def _retrace_kernel(observed, row0, col0, directions, range_cells, n_cells, hit)
                 observed[row, col] = OCCUPIED
             elif observed[row, col] != OCCUPIED:
                 observed[row, col] = FREE
+            if mark_seen:
+                seen[row, col] = True
             if i < last:
                 state, t = next_cell(ray, state)
                 if t > range_cells or not inside(n_rows, n_cols, state[0], state[1]):

@@ -174,7 +174,9 @@ class TeamStepRequest(Message):
     """A team robot's planner -> the team's world on `step`: its motion of step seq - 1 (as
     `StepRequest`), whether it has nothing left to explore (`done`), and, when it re-planned
     (`claimed`), its new claim: goal [row, col] and score, or nil (no goal), and the
-    claimed cells `claim_visible` bool (rows, cols) (docs/algorithms.md#teams).
+    claimed cells `claim_visible` bool (rows, cols) (docs/algorithms.md#teams). The score is
+    -inf for a goal its method had ruled out and took because nothing else was left
+    (`nearest_team` near a teammate's goal); NaN and +inf are refused.
     """
 
     TYPE: ClassVar[str] = "team_step_request"
@@ -193,8 +195,8 @@ class TeamStepRequest(Message):
         if self.claim_goal is not None:
             _set(self, "claim_goal", _checked_cell(self.TYPE, "claim_goal", self.claim_goal))
             _check_array(self.TYPE, "claim_visible", self.claim_visible, np.bool_, 2)
-            if self.claim_score is None or not math.isfinite(self.claim_score):
-                raise ProtocolError(f"{self.TYPE}: a claim needs a finite claim_score")
+            if self.claim_score is None or not -math.inf <= self.claim_score < math.inf:
+                raise ProtocolError(f"{self.TYPE}: a claim needs a claim_score below +inf")
         if self.run_token is not None:
             _set(self, "run_token", _one_line(self.TYPE, "run_token", self.run_token))
 
@@ -228,7 +230,8 @@ class TeamScanReply(Message):
     bool (N, rays); `stood_still` bool (N,): robots whose planner did not send the step in
     time, or that are lost), the claims made at it (`claim_state` uint8 (N,): 0 none, 1 a
     claim, 2 withdrawn; `claim_goals` int32 (N, 2), `claim_scores` float64 (N,),
-    `claim_visible` bool (N, rows, cols)), `lost` bool (N,): robots whose planner is gone
+    `claim_visible` bool (C, rows, cols): the claimed cells of the C robots with a new claim,
+    in robot order), `lost` bool (N,): robots whose planner is gone
     (its liveliness token went; its claim is withdrawn at the step it is first lost), and
     `finished`: every robot left was done, no step was taken (the scans are then empty).
     """
@@ -258,6 +261,16 @@ class TeamScanReply(Message):
             raise ProtocolError(f"{self.TYPE}: every per-robot array needs {robots} rows")
         if self.claim_state.max(initial=0) > 2:
             raise ProtocolError(f"{self.TYPE}: claim_state holds codes other than 0, 1, 2")
+        made = int(np.count_nonzero(self.claim_state == CLAIM_MADE))
+        if len(self.claim_visible) != made:
+            raise ProtocolError(
+                f"{self.TYPE}: claim_visible needs one row per new claim ({made}), "
+                f"got {len(self.claim_visible)}"
+            )
+
+    def visible_of(self, robot: int) -> np.ndarray:
+        """The claimed cells of `robot`'s new claim (claim_state 1)."""
+        return self.claim_visible[int(np.count_nonzero(self.claim_state[:robot] == CLAIM_MADE))]
 
     def _fields(self, config: ServicesConfig) -> dict[str, Any]:
         fields = {
@@ -276,7 +289,7 @@ class TeamScanReply(Message):
 
 
 CLAIM_NONE, CLAIM_MADE, CLAIM_WITHDRAWN = 0, 1, 2  # claim_state codes of a team reply
-TEAM_CLAIM_FIELDS = ("claim_state", "claim_goals", "claim_scores", "claim_visible")
+TEAM_CLAIM_FIELDS = ("claim_state", "claim_goals", "claim_scores")  # a row per robot
 TEAM_REPLY_ARRAYS = (
     ("poses", np.int32, 2),
     ("n_cells", np.uint16, 2),

@@ -166,17 +166,17 @@ class TeamWorldServer(WorldServer):
         state = np.zeros(n, dtype=np.uint8)
         goals = np.zeros((n, 2), dtype=np.int32)
         scores = np.zeros(n, dtype=np.float64)
-        visible = np.zeros((n, *shape), dtype=bool)
         for robot, request in requests.items():
             if not request.claimed:
                 continue
             state[robot] = CLAIM_WITHDRAWN if request.claim_goal is None else CLAIM_MADE
             if request.claim_goal is not None:
                 goals[robot], scores[robot] = request.claim_goal, request.claim_score
-                visible[robot] = request.claim_visible
         for robot in sorted(self.lost - self._announced):  # its claim expires
             state[robot] = CLAIM_WITHDRAWN
             self._announced.add(robot)
+        made = np.flatnonzero(state == CLAIM_MADE)  # the claimed cells of each, robot order
+        visible = np.array([requests[r].claim_visible for r in made], dtype=bool)
         stood = np.zeros(n, dtype=bool)
         stood[late] = True
         lost = np.zeros(n, dtype=bool)
@@ -186,7 +186,8 @@ class TeamWorldServer(WorldServer):
             np.array([s.pose for s in scans], dtype=np.int32).reshape(-1, 2),
             np.array([s.n_cells for s in scans], dtype=np.uint16).reshape(len(scans), rays),
             np.array([s.hit for s in scans], dtype=bool).reshape(len(scans), rays),
-            stood, state, goals, scores, visible, lost,
+            stood, state, goals, scores,
+            visible.reshape(len(made), *shape), lost,
         )  # fmt: skip
 
 

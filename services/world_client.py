@@ -196,7 +196,7 @@ def _team_step_of(reply: TeamScanReply, t: int) -> TeamStep:
             claims[robot] = None
         elif state == CLAIM_MADE:
             goal = (int(reply.claim_goals[robot][0]), int(reply.claim_goals[robot][1]))
-            score, visible = float(reply.claim_scores[robot]), reply.claim_visible[robot].copy()
+            score, visible = float(reply.claim_scores[robot]), reply.visible_of(robot).copy()
             claims[robot] = Claim(robot, t, goal, score, visible)
     lost = tuple(int(robot) for robot in np.flatnonzero(reply.lost))
     return TeamStep(scans, claims, reply.finished, lost)

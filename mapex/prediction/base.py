@@ -90,6 +90,14 @@ class EnsemblePrediction:
             )
         return variance
 
+    def with_known(self, observed: np.ndarray) -> EnsemblePrediction:
+        """This prediction with the known cells of a later map `observed` copied through,
+        as `predict` does for its own map: cells observed since are certain (zero variance),
+        the others keep what was predicted."""
+        known = observed != UNKNOWN
+        members = np.where(known[None], observed_to_probability(observed)[None], self.members)
+        return EnsemblePrediction(members, self.region, self.member_ids, self.workers)
+
     def _ensemble_rows(self) -> list[int]:
         """The rows holding G_1..G_n."""
         return [row for row, member in enumerate(self.answered) if member != 0]

@@ -24,13 +24,14 @@ import numpy as np
 from mapex.config import ExplorationConfig
 from mapex.episode import EpisodeResult
 from mapex.explorer import Explorer, ExplorerStats
-from mapex.grid import UNKNOWN, Cell, new_observed_map
+from mapex.grid import Cell, new_observed_map
 from mapex.prediction.base import Predictor
 from mapex.recorder import MetricRecorder
 from mapex.sensor import Scan, integrate_scan
 from mapex.simulator import Simulator
 from mapex.team.claims import Claim, ClaimBoard
 from mapex.team.methods import TeamScorer, make_team_method
+from mapex.team.shared_prediction import EpochPrediction, TeammateExplorer
 from mapex.team.starts import team_start_cells
 from mapex.worlds import StartSpec, World
 
@@ -125,12 +126,16 @@ class Team:
         self.robots = robots
         self.observed = new_observed_map(shape)
         self.explorers: dict[int, Explorer] = {}
+        self.shared = None if predictor is None else EpochPrediction(
+            predictor, config.team.prediction_epoch_steps, config.sensor.range_cells
+        )  # fmt: skip
         for robot in local:
             method = make_team_method(method_name, config)
-            explorer = Explorer(shape, method, predictor, config, seed + robot)
+            explorer = TeammateExplorer(shape, method, self.shared, config, seed + robot)
             explorer.observed = self.observed  # one map for the whole team
             self.explorers[robot] = explorer
-        self.seen = [new_observed_map(shape) for _ in range(robots)]  # for the overlap
+        # the cells each robot's own scans walked, for the overlap
+        self.seen = [np.zeros(shape, dtype=bool) for _ in range(robots)]
         self.trajectories: list[list[np.ndarray]] = [[] for _ in range(robots)]
         self.board = ClaimBoard(shape, config.team.claim_conflict_cells)
         self.lost_at: dict[int, int] = {}
@@ -143,6 +148,8 @@ class Team:
     def decide(self, t: int) -> list[Decision]:
         """The decisions of the robots run here for step t, each seeing the claims as they
         stood after step t - 1."""
+        if self.shared is not None:
+            self.shared.begin_step(t, self.observed)
         decisions = []
         for robot, explorer in self.explorers.items():
             method: TeamScorer = explorer.method  # type: ignore[assignment]
@@ -164,15 +171,13 @@ class Team:
         """Integrate every robot's scan, in robot order, into the shared map."""
         for robot, scan in enumerate(scans):
             if robot in self.explorers:
-                self.explorers[robot].observe(scan)
+                self.explorers[robot].observe(scan, self.seen[robot])
             else:
-                integrate_scan(self.observed, scan, self.config.sensor)
-            integrate_scan(self.seen[robot], scan, self.config.sensor)
+                integrate_scan(self.observed, scan, self.config.sensor, self.seen[robot])
             self.trajectories[robot].append(np.asarray(scan.pose, dtype=np.int64))
 
     def overlap(self) -> float:
-        known = np.stack([seen != UNKNOWN for seen in self.seen])
-        counts = known.sum(axis=0)
+        counts = np.sum(self.seen, axis=0, dtype=np.int32)
         return float((counts > 1).sum() / max((counts > 0).sum(), 1))
 
 

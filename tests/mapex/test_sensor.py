@@ -70,6 +70,23 @@ def test_integration_marks_exactly_the_walked_cells(seed: int) -> None:
         assert np.all(occupancy[observed == OCCUPIED]), "a free cell was marked occupied"
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_seen_gets_exactly_the_cells_each_scan_walked(seed: int) -> None:
+    """A team's per-robot record: `seen` holds the cells this robot's scans walked, though
+    the map they were integrated into already knew some of them."""
+    occupancy = random_world(200 + seed)
+    shared = new_observed_map(occupancy.shape)
+    first, second = free_poses(occupancy, 2, seed)
+    integrate_scan(shared, cast_scan(occupancy, first, SMALL), SMALL)  # a teammate's scan
+    seen = np.zeros(occupancy.shape, dtype=bool)
+    integrate_scan(shared, cast_scan(occupancy, second, SMALL), SMALL, seen)
+    alone = new_observed_map(occupancy.shape)
+    integrate_scan(alone, cast_scan(occupancy, second, SMALL), SMALL)
+    np.testing.assert_array_equal(seen, alone != UNKNOWN)
+    with pytest.raises(ValueError, match="seen must be bool"):
+        integrate_scan(shared, cast_scan(occupancy, second, SMALL), SMALL, seen[1:])
+
+
 def test_hits_are_occupied_walls_and_stay_occupied() -> None:
     occupancy = random_world(7)
     observed = new_observed_map(occupancy.shape)

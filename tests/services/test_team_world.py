@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import threading
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 from mapex.config import ExplorationConfig
 from mapex.team.starts import team_start_cells
 from mapex.worlds import load_world
+from services.codec import ProtocolError
 from services.config import ServicesConfig
 from services.messages import ErrorReply, TeamScanReply, TeamStepRequest
 from services.team_world import TeamWorldServer
@@ -60,7 +62,8 @@ def test_every_robot_gets_every_scan_and_claim_of_the_step(server):
     reply = second[0]
     assert tuple(reply.poses[0]) == step and tuple(reply.poses[1]) == tuple(server.starts[1])
     assert list(reply.claim_state) == [1, 0] and reply.claim_scores[0] == 2.5
-    assert reply.claim_visible[0][5, 5] and not reply.stood_still.any()
+    assert len(reply.claim_visible) == 1 and reply.visible_of(0)[5, 5]  # new claims only
+    assert not reply.stood_still.any()
     assert server.answer_step(1, request(1)) is reply  # a retry gets the same reply
 
 
@@ -96,3 +99,36 @@ def test_a_lost_robot_is_not_waited_for_and_its_claim_expires(server):
     assert list(reply.claim_state) == [0, 2]  # robot 1's claim is withdrawn, once
     (after,) = together(server, {0: request(3, done=True)}).values()
     assert list(after.claim_state) == [0, 0] and after.finished  # the robots left are done
+
+
+def test_a_last_resort_claim_scored_minus_infinity_goes_through():
+    """nearest_team rules out frontiers near a teammate's goal with -inf and still takes one
+    when nothing else is left: that claim travels; NaN and +inf scores are refused."""
+    visible = np.zeros((4, 5), dtype=bool)
+    payload = request(1, claim=((2, 3), -math.inf, visible))
+    assert TeamStepRequest.decode(payload).claim_score == -math.inf
+    for bad in (math.nan, math.inf):
+        with pytest.raises(ProtocolError, match="claim_score"):
+            request(1, claim=((2, 3), bad, visible))
+
+
+def test_claimed_cells_travel_for_new_claims_only_in_robot_order():
+    """A reply carries one claimed-cells map per new claim: the second robot's claim is the
+    first row when the first robot made none; a reply whose rows do not match is refused."""
+    shape = (6, 7)
+    state = np.array([0, 1, 2], dtype=np.uint8)
+    visible = np.zeros((1, *shape), dtype=bool)
+    visible[0, 2, 3] = True
+    reply = TeamScanReply(
+        3, False, np.zeros((0, 2), np.int32), np.zeros((0, 5), np.uint16),
+        np.zeros((0, 5), bool), np.zeros(3, bool), state, np.zeros((3, 2), np.int32),
+        np.array([0.0, 1.5, 0.0]), visible, np.zeros(3, bool),
+    )  # fmt: skip
+    decoded = TeamScanReply.decode(reply.encode())
+    assert decoded.visible_of(1)[2, 3] and decoded.visible_of(1).sum() == 1
+    with pytest.raises(ProtocolError, match="one row per new claim"):
+        TeamScanReply(
+            3, False, np.zeros((0, 2), np.int32), np.zeros((0, 5), np.uint16),
+            np.zeros((0, 5), bool), np.zeros(3, bool), state, np.zeros((3, 2), np.int32),
+            np.zeros(3), np.zeros((3, *shape), bool), np.zeros(3, bool),
+        )  # fmt: skip
