@@ -42,6 +42,7 @@ def test_tuple_overrides_are_comma_separated_typed_values():
         ("steps=many", "not a valid int"),
         ("visibility.stop_rule=sometimes", "choose one of"),
         ("steps", "section.field=value"),
+        ("team.prediction_epoch_steps=0", "must be >= 1"),
     ],
 )
 def test_bad_overrides_are_one_line_errors(override, message):

@@ -86,6 +86,20 @@ def test_predict_whole_map_copies_known_cells_and_fills_unknown_ones() -> None:
     assert prediction.answered == (0, 1, 2)
 
 
+def test_with_known_is_the_prediction_with_a_later_maps_known_cells() -> None:
+    """Cells known since the prediction are copied through (certain: no variance); the
+    cells still unknown keep what the members said; predicting the later map gives the
+    same numbers where the prediction saw the same cells."""
+    earlier = _random_observed((9, 13), seed=3)
+    later = earlier.copy()
+    later[earlier == UNKNOWN] = np.where(np.arange((earlier == UNKNOWN).sum()) % 2, FREE, UNKNOWN)
+    predictor = _ConstantMembers(n_members=3)
+    updated = predictor.predict(earlier).with_known(later)
+    np.testing.assert_array_equal(updated.members, predictor.predict(later).members)
+    assert np.all(updated.variance[later != UNKNOWN] == 0.0)
+    assert updated.answered == (0, 1, 2)
+
+
 def test_member_outputs_are_quantised_to_the_wire_levels() -> None:
     observed = _random_observed((6, 7), seed=5)
     prediction = _ConstantMembers(n_members=2).predict(observed)

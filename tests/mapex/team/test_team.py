@@ -16,6 +16,7 @@ from mapex.prediction.base import EnsemblePrediction
 from mapex.team.claims import Claim, ClaimBoard
 from mapex.team.episode import run_team_episode
 from mapex.team.methods import TEAM_METHODS, make_team_method
+from mapex.team.shared_prediction import EpochPrediction
 from mapex.team.starts import team_start_cells
 from mapex.worlds import WorldError, generate_floor_plan, load_world
 
@@ -183,3 +184,50 @@ def test_every_robot_holds_the_merged_map_and_overlap_counts_shared_cells(predic
     assert result.robots == 2 and len(result.robot_stats) == 2
     moved = [np.abs(np.diff(path, axis=0)).max() for path in result.trajectories]
     assert max(moved) <= CONFIG.motion.cells_per_step
+
+
+# ----------------------------------------------------------------------------- predictions
+
+
+class _Counting:
+    """A predictor that counts its predictions and remembers each map it was given."""
+
+    def __init__(self, inner):
+        self.inner, self.maps = inner, []
+
+    def predict(self, observed, region=None, members=None):
+        self.maps.append(observed.copy())
+        return self.inner.predict(observed, region, members)
+
+
+def test_the_team_predicts_once_per_epoch_on_the_epochs_map(predictor):
+    """Re-plans within an epoch share one prediction made on the map at the epoch's first
+    step, with the cells known since copied through; the next epoch predicts again."""
+    world = load_world("generated:0")
+    maps = [np.full(world.shape, UNKNOWN, dtype=np.uint8) for _ in range(3)]
+    for k, observed in enumerate(maps):
+        observed[40 : 60 + 10 * k, 40:80] = FREE  # the known area grows step by step
+    counting = _Counting(predictor)
+    shared = EpochPrediction(counting, epoch_steps=10, margin_cells=20)
+    shared.begin_step(10, maps[0])
+    first = shared.prediction(maps[0])
+    shared.begin_step(11, maps[1])
+    later = shared.prediction(maps[1])  # same epoch: no new prediction
+    assert len(counting.maps) == 1 and np.array_equal(counting.maps[0], maps[0])
+    np.testing.assert_array_equal(later.members, first.with_known(maps[1]).members)
+    shared.begin_step(20, maps[2])
+    shared.prediction(maps[2])
+    assert len(counting.maps) == 2 and np.array_equal(counting.maps[1], maps[2])
+
+
+@pytest.mark.parametrize("epoch_steps", [1, 10])
+def test_epoch_predictions_keep_team_runs_deterministic(world, predictor, epoch_steps):
+    config = replace(CONFIG, team=TeamConfig(prediction_epoch_steps=epoch_steps))
+    runs = [
+        run_team_episode(world, "mapex_team", predictor, 2, [1], seed=5, config=config)
+        for _ in range(2)
+    ]
+    for a, b in zip(runs[0].trajectories, runs[1].trajectories, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert runs[0].curves.coverage == runs[1].curves.coverage
+    assert runs[0].curves.coverage[-1] > runs[0].curves.coverage[0]
