@@ -171,8 +171,9 @@ class TeamConfig:
     claim_path_every_cells: int = 10
     # the team predicts on its map as it stood at the last multiple of this many steps, once
     # per such epoch for every robot re-planning in it (cells observed since are copied
-    # through); 1: each re-plan predicts on the current map, as single-robot `mapex`.
-    # 10 cuts a 4-robot step through services.up from 2.6 x to 1.8 x one robot's, with two
+    # through); 1: each re-plan predicts on the current map, as single-robot `mapex` (and
+    # a team of one) does.
+    # 10 cuts a 4-robot step through services.up from 2.6 x to 1.7 x one robot's, with two
     # robots' AUCs unchanged within noise (docs/results/teams.md)
     prediction_epoch_steps: int = 10
 

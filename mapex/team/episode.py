@@ -126,8 +126,10 @@ class Team:
         self.robots = robots
         self.observed = new_observed_map(shape)
         self.explorers: dict[int, Explorer] = {}
+        # a team of one predicts at every re-plan, exactly as a single robot
+        epoch_steps = config.team.prediction_epoch_steps if robots > 1 else 1
         self.shared = None if predictor is None else EpochPrediction(
-            predictor, config.team.prediction_epoch_steps, config.sensor.range_cells
+            predictor, epoch_steps, config.sensor.range_cells
         )  # fmt: skip
         for robot in local:
             method = make_team_method(method_name, config)
