@@ -29,7 +29,6 @@ class EpochPrediction:
         self.predictor = predictor
         self.epoch_steps = epoch_steps
         self.margin_cells = margin_cells  # the known area plus this is predicted (sensor range)
-        self.made = 0  # predictions made here
         self._epoch_map: np.ndarray | None = None
         self._prediction: EnsemblePrediction | None = None
 
@@ -45,7 +44,6 @@ class EpochPrediction:
         if self._prediction is None:
             region = known_region(self._epoch_map, self.margin_cells)
             self._prediction = self.predictor.predict(self._epoch_map, region)
-            self.made += 1
         return self._prediction.with_known(observed)
 
 
