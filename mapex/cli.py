@@ -16,7 +16,7 @@ from mapex.config import (
 )
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
-from mapex.prediction.config import add_precision_argument
+from mapex.prediction.config import DEFAULT_INFERENCE, add_inference_arguments, inference_from_args
 from mapex.prediction.weights import WeightsError
 from mapex.team.methods import ALL_METHODS, check_team_flags
 from mapex.worlds import DEFAULT_WORLD, WorldError, load_world, start_label
@@ -64,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
         "package) or 'classical' (OpenCV inpainting); also used for the IoU/TU metrics; "
         "default: %(default)s",
     )
-    add_precision_argument(run)
+    add_inference_arguments(run)
     run.add_argument("--steps", type=int, default=1000, help="time budget T; default: %(default)s")
     add_start_argument(run, 0, "start pose (default 0)")
     run.add_argument("--seed", type=int, default=0, help="random seed (UPEN's RRT); default: 0")
@@ -85,11 +85,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def predictor_options(args: argparse.Namespace) -> dict:
-    """Keyword arguments of the chosen predictor from the flags (only 'lama' has a precision)."""
+    """Keyword arguments of the chosen predictor from the flags (only 'lama' takes the
+    inference flags)."""
+    inference = inference_from_args(args)
     if args.predictor == "lama":
-        return {"precision": args.precision}
-    if args.precision != "float32":
-        raise ConfigError(f"--precision {args.precision}: only the 'lama' predictor has one")
+        return inference.ensemble_options()
+    if inference != DEFAULT_INFERENCE:
+        flags = " ".join(inference.flags())
+        raise ConfigError(f"{flags}: only the 'lama' predictor runs networks")
     return {}
 
 

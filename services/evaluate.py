@@ -50,6 +50,7 @@ from mapex.config import (
 )
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import ABLATIONS, MAIN_COMPARISON, parse_method_list
+from mapex.prediction.config import inference_from_args
 from mapex.report.runs import ReportError, load_run
 from mapex.results import METRICS_FILE, check_output_folder, episode_name, move_into_place
 from mapex.team.methods import ALL_METHODS, TEAM_METHODS, check_team_flags
@@ -331,7 +332,7 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
         args.replicas,
         args.threads,
         flags,
-        args.precision,
+        inference_from_args(args),
         id_prefix=f"ev{os.getpid()}",
     )
     watch = PoolWatch(session, supervisor, workers, services)

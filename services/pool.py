@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import zenoh
 
 from mapex.prediction.base import MEMBER_NAMES
-from mapex.prediction.config import Precision, add_precision_argument
+from mapex.prediction.config import DEFAULT_INFERENCE, InferenceConfig, add_inference_arguments
 from services.codec import ProtocolError
 from services.config import ServicesConfig
 from services.keys import RobotKey, RobotTopic, parse_key, robot_key_pattern
@@ -39,7 +39,8 @@ def parse_member_list(text: str) -> tuple[str, ...]:
 
 def add_pool_arguments(parser: argparse.ArgumentParser) -> None:
     """The predictor-pool flags of `services.up` and `services.evaluate`: which members to
-    spawn workers for, how many per member, their torch threads and precision."""
+    spawn workers for, how many per member, their torch threads and how they run their
+    networks (precision, inference path, views)."""
     parser.add_argument(
         "--members",
         type=parse_member_list,
@@ -48,7 +49,7 @@ def add_pool_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--replicas", type=int, default=1, help="workers per member (default 1)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads per worker")
-    add_precision_argument(parser)
+    add_inference_arguments(parser)
 
 
 @dataclass(frozen=True)
@@ -64,12 +65,12 @@ def worker_specs(
     replicas: int,
     threads: int,
     zenoh_flags: list[str],
-    precision: Precision = "float32",
+    inference: InferenceConfig = DEFAULT_INFERENCE,
     id_prefix: str = "pool",
 ) -> list[WorkerSpec]:
     """`replicas` predictor workers per member, restarted when they die; worker ids
     `<id_prefix>-<member>-<replica>` (the supervisor probes their health under these)."""
-    flags = ("--threads", str(threads), "--precision", precision, *zenoh_flags)
+    flags = ("--threads", str(threads), *inference.flags(), *zenoh_flags)
     specs = []
     for member in members:
         for replica in range(replicas):

@@ -2,6 +2,7 @@
 
     python -m services.predictor --member g [--worker-id ID] [--weights-dir DIR]
         [--device cpu|cuda] [--threads 1] [--precision float32|bfloat16]
+        [--inference fused|plain] [--views 1|2]
         [--hang-after N] [--mode ...] [--connect ...] [--listen ...]
 
 The worker loads its member's weights, declares a queryable on
@@ -23,7 +24,6 @@ everything, close the session and exit 0. Bad flags or missing weights: one line
 from __future__ import annotations
 
 import argparse
-import hashlib
 import logging
 import os
 import re
@@ -31,15 +31,18 @@ import socket
 import sys
 import threading
 import time
-from collections import OrderedDict
 from pathlib import Path
 
-import numpy as np
 import zenoh
 
 from mapex.exit_codes import EXIT_USAGE
 from mapex.prediction.base import Predictor
-from mapex.prediction.config import Precision, add_precision_argument
+from mapex.prediction.config import (
+    DEFAULT_INFERENCE,
+    InferenceConfig,
+    add_inference_arguments,
+    inference_from_args,
+)
 from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
 from services.codec import DEFAULT_SERVICES, Payload, ProtocolError, quantise_probability
 from services.config import ServicesConfig
@@ -67,7 +70,6 @@ from services.zenoh_config import (
 )
 
 _DEVICE_PATTERN = re.compile(r"cpu|cuda(:\d+)?")
-RECENT_PREDICTIONS = 8  # distinct crops whose answer a worker keeps (uint8, a few MB each)
 
 log = logging.getLogger("services.predictor")
 
@@ -75,9 +77,9 @@ log = logging.getLogger("services.predictor")
 class MemberServer:
     """Turns one request payload into the reply of one member; knows nothing of Zenoh.
 
-    The answers to the last `RECENT_PREDICTIONS` distinct crops are kept: the planners of a
-    team hold the same merged map, so at a step where several of them ask for the same crop
-    (the metrics' whole-map prediction, above all) it is computed once; the network is
+    The ensemble keeps its last answers by crop (`mapex.prediction.recent`): the planners of
+    a team hold the same merged map, so at a step where several of them ask for the same
+    crop (the metrics' whole-map prediction, above all) it is computed once; the network is
     deterministic, so the answer is the one it would compute again. Tracks what a health
     probe reports: the start of the prediction being computed, the
     predictions answered and the requests dropped past their budget. `hang_after` (fault
@@ -94,7 +96,6 @@ class MemberServer:
         self.answered = 0  # predictions served
         self.dropped = 0  # requests that waited past their budget
         self._busy_since: float | None = None  # monotonic start of the current prediction
-        self._recent: OrderedDict[bytes, np.ndarray] = OrderedDict()  # crop digest -> answer
 
     def answer(self, payload: Payload | None, waited_s: float = 0.0) -> PredictReply | ErrorReply:
         """The PredictReply for a valid PredictRequest payload, else an ErrorReply saying why.
@@ -134,12 +135,9 @@ class MemberServer:
             log.warning("fault injection: hanging on request %d", request.request_id)
             threading.Event().wait()  # for ever, as a deadlocked worker would
         started = time.perf_counter()
-        key = _crop_key(request.observed)
         try:
-            quantised = self._recent.get(key)
-            if quantised is None:
-                probabilities = self.predictor.predict_members(request.observed, (0,))[0]
-                quantised = quantise_probability(probabilities)
+            probabilities = self.predictor.predict_members(request.observed, (0,))[0]
+            quantised = quantise_probability(probabilities)
             compute_ms = (time.perf_counter() - started) * 1e3
             reply = PredictReply(
                 request.request_id, self.member, quantised, self.worker_id, compute_ms
@@ -147,15 +145,8 @@ class MemberServer:
         except Exception as error:  # a failed prediction must not take the worker down
             log.exception("prediction of request %d failed", request.request_id)
             return ErrorReply(f"prediction failed: {type(error).__name__}: {error}")
-        self._remember(key, quantised)
         self.answered += 1
         return reply
-
-    def _remember(self, key: bytes, quantised: np.ndarray) -> None:
-        self._recent[key] = quantised
-        self._recent.move_to_end(key)
-        while len(self._recent) > RECENT_PREDICTIONS:
-            self._recent.popitem(last=False)
 
 
 def serve(
@@ -192,7 +183,7 @@ def main(
     threads: int = DEFAULT_SERVICES.predictor_threads,
     stop: threading.Event | None = None,
     services: ServicesConfig = DEFAULT_SERVICES,
-    precision: Precision = "float32",
+    inference: InferenceConfig = DEFAULT_INFERENCE,
     hang_after: int | None = None,
 ) -> int:
     """Load `member`'s weights, then serve it until `stop` is set; return the queries answered.
@@ -205,7 +196,11 @@ def main(
     return_freed_memory()
 
     predictor = LearnedEnsemble(
-        Path(weights_dir), device, threads, members=(member,), precision=precision
+        Path(weights_dir),
+        device,
+        threads,
+        members=(member,),
+        **inference.ensemble_options(),
     )
     session = open_session(config)
     try:
@@ -213,13 +208,6 @@ def main(
         return serve(session, server, stop or threading.Event(), services)
     finally:
         session.close()
-
-
-def _crop_key(observed: np.ndarray) -> bytes:
-    """A digest of a crop's shape and codes (equal crops, equal keys)."""
-    digest = hashlib.blake2b(str(observed.shape).encode(), digest_size=16)
-    digest.update(np.ascontiguousarray(observed).data)
-    return digest.digest()
 
 
 def default_worker_id() -> str:
@@ -244,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=DEFAULT_SERVICES.predictor_threads,
         help="torch CPU threads (default: one, as several workers share the machine)",
     )
-    add_precision_argument(parser)
+    add_inference_arguments(parser)
     parser.add_argument(
         "--hang-after",
         type=int,
@@ -275,7 +263,7 @@ def run_cli(argv: list[str] | None = None) -> int:
             args.device,
             args.threads,
             stop,
-            precision=args.precision,
+            inference=inference_from_args(args),
             hang_after=args.hang_after,
         )
     except (WeightsError, ZenohConfigError) as error:

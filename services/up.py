@@ -39,6 +39,7 @@ from mapex.config import (
     apply_overrides,
 )
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
+from mapex.prediction.config import inference_from_args
 from mapex.results import DEFAULT_RESULTS_DIR, check_output_folder
 from mapex.team.methods import ALL_METHODS, TEAM_METHODS
 from mapex.team.starts import team_start_cells
@@ -113,7 +114,7 @@ def _run_starts(start: StartSpec, run: int, robots: int) -> tuple[StartSpec, ...
 def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str]) -> dict:
     """Process specs by role: 'workers', 'worlds', 'planners'."""
     workers = worker_specs(
-        args.members, args.replicas, args.threads, zenoh_flags, args.precision,
+        args.members, args.replicas, args.threads, zenoh_flags, inference_from_args(args),
         id_prefix=f"up{os.getpid()}",
     )  # fmt: skip
     worlds, planners = [], []

@@ -147,8 +147,47 @@ class ClassicalPredictorConfig:
     )
 
 
-def add_precision_argument(parser: argparse.ArgumentParser) -> None:
-    """--precision of the learned ensemble's forward pass into `args.precision`."""
+InferencePath = Literal["fused", "plain"]
+INFERENCE_PATHS: tuple[str, ...] = typing.get_args(InferencePath)
+
+
+@dataclass(frozen=True)
+class InferenceConfig:
+    """How the learned ensemble runs its networks (docs/benchmarks.md#the-predictor).
+
+    `path`: "fused" (mapex.prediction.inference: batch norms folded, refinement in cached
+    strips; the same logits to float32 rounding, about 1.4 times faster on one core) or
+    "plain" (the training module as it is). `views`: 1 (the map only) or 2 (also the map
+    turned by 180 degrees, logits averaged; twice the work); None: as the weights file says.
+    `precision`: float32, or bfloat16 autocast (not held to float32's agreement)."""
+
+    precision: Precision = "float32"
+    path: InferencePath = "fused"
+    views: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision {self.precision!r}: choose from {', '.join(PRECISIONS)}")
+        if self.path not in INFERENCE_PATHS:
+            raise ValueError(f"inference {self.path!r}: choose from {', '.join(INFERENCE_PATHS)}")
+        if self.views not in (None, 1, 2):
+            raise ValueError(f"views {self.views!r}: choose 1 or 2")
+
+    def ensemble_options(self) -> dict:
+        """Keyword arguments of `LearnedEnsemble` that run it this way."""
+        return {"precision": self.precision, "inference": self.path, "views": self.views}
+
+    def flags(self) -> tuple[str, ...]:
+        """The command-line flags that give this configuration (for spawned workers)."""
+        views = () if self.views is None else ("--views", str(self.views))
+        return ("--precision", self.precision, "--inference", self.path, *views)
+
+
+DEFAULT_INFERENCE = InferenceConfig()
+
+
+def add_inference_arguments(parser: argparse.ArgumentParser) -> None:
+    """--precision, --inference and --views of the learned ensemble (`inference_from_args`)."""
     parser.add_argument(
         "--precision",
         default="float32",
@@ -156,3 +195,23 @@ def add_precision_argument(parser: argparse.ArgumentParser) -> None:
         help="forward pass: float32 (default; the README's figures) or bfloat16 (about 2x "
         "faster on CPUs with AVX512-BF16/AMX and on GPUs, slower on other CPUs)",
     )
+    parser.add_argument(
+        "--inference",
+        default="fused",
+        choices=INFERENCE_PATHS,
+        help="fused (default: batch norms folded, cache-sized refinement strips; the same "
+        "probabilities to 1e-5) or plain (the training module, PyTorch as is)",
+    )
+    parser.add_argument(
+        "--views",
+        type=int,
+        default=None,
+        choices=(1, 2),
+        help="network passes per prediction: 1 (the map) or 2 (and the map turned by 180 "
+        "degrees, averaged); default: as the weights say",
+    )
+
+
+def inference_from_args(args: argparse.Namespace) -> InferenceConfig:
+    """The InferenceConfig of the flags `add_inference_arguments` added."""
+    return InferenceConfig(args.precision, args.inference, args.views)

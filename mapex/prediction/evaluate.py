@@ -37,7 +37,12 @@ from mapex.plotting import occupancy_image, plt
 from mapex.prediction import make_predictor
 from mapex.prediction.base import EnsemblePrediction
 from mapex.prediction.classical import distance_to_known
-from mapex.prediction.config import Precision, PredictorEvaluationConfig, add_precision_argument
+from mapex.prediction.config import (
+    InferenceConfig,
+    PredictorEvaluationConfig,
+    add_inference_arguments,
+    inference_from_args,
+)
 from mapex.prediction.dataset import snapshots_at
 from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
 from mapex.worlds import WorldError, load_world, start_poses
@@ -141,16 +146,18 @@ def evaluate(
     settings: PredictorEvaluationConfig,
     figure: Path | None,
     weights_dir: Path = WEIGHTS_DIR,
-    precision: Precision = "float32",
+    inference: InferenceConfig | None = None,
     reference_dir: Path | None = REFERENCE_WEIGHTS_DIR,
 ) -> list[SnapshotScore]:
     """Score every (map, start, time) snapshot of the ensemble in `weights_dir` (and the G of
-    `reference_dir`, if given), run at `precision`; optionally draw one of them."""
-    learned = make_predictor("lama", weights_dir=weights_dir, precision=precision)
+    `reference_dir`, if given), run as `inference` says; optionally draw one of them."""
+    inference = inference or InferenceConfig()
+    options = inference.ensemble_options()
+    learned = make_predictor("lama", weights_dir=weights_dir, **options)
     reference = (
         None
         if reference_dir is None
-        else make_predictor("lama", weights_dir=reference_dir, precision=precision)
+        else make_predictor("lama", weights_dir=reference_dir, **options)
     )
     classical = make_predictor("classical")
     config = ExplorationConfig()
@@ -354,14 +361,15 @@ def main(argv: list[str] | None = None) -> int:
         help="the ensemble whose G is compared (default: %(default)s, the v1 weights)",
     )
     parser.add_argument("--no-reference", action="store_true", help="compare with no reference G")
-    add_precision_argument(parser)
+    add_inference_arguments(parser)
     args = parser.parse_args(argv)
     settings = dataclasses.replace(defaults, snapshot_times=tuple(sorted(set(args.times))))
     if min(settings.snapshot_times) < 0:
         parser.error("--times must be >= 0")
     try:
         reference = None if args.no_reference else args.reference_weights
-        scores = evaluate(args.maps, settings, args.figure, args.weights, args.precision, reference)
+        inference = inference_from_args(args)
+        scores = evaluate(args.maps, settings, args.figure, args.weights, inference, reference)
     except (WorldError, WeightsError) as error:
         print(f"mapex.prediction.evaluate: error: {error}", file=sys.stderr)
         return EXIT_USAGE

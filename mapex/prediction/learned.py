@@ -5,23 +5,31 @@ mapex.prediction.train`); they load on CPU with no GPU present and use a GPU whe
 asked. A member's stored logit bias is added to its output: G's calibrated decision
 threshold (`mapex.prediction.calibration`), 0 for G_1..G_3. Torch runs with
 `threads` CPU threads (all cores when alone on the machine, one per worker when
-several share it). With `precision="bfloat16"` the forward pass runs under bfloat16
-autocast: about twice as fast on CPUs with AVX512-BF16 or AMX and on GPUs (slower on
-CPUs without them); probabilities move by at most about 0.01. float32 is the default,
-with which every figure in the README was measured.
+several share it). How the networks run is an `InferenceConfig`: the fused inference
+path by default (`mapex.prediction.inference`), the plain training module on request,
+one or two views, float32 or bfloat16 (docs/benchmarks.md#the-predictor).
+
+The last few answers are kept by crop digest, so the same crop asked twice (G's metric
+prediction and a re-plan's on the same map, or the planners of a team) costs one pass;
+`predict_later` computes in a background thread, so exploration goes on meanwhile.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from mapex.prediction.base import Predictor
-from mapex.prediction.config import PRECISIONS, NetworkConfig, Precision
+from mapex.prediction.base import EnsemblePrediction, Predictor, Region
+from mapex.prediction.config import InferenceConfig, NetworkConfig
+from mapex.prediction.inference import FusedGenerator
 from mapex.prediction.network import autocast, encode_observed
+from mapex.prediction.recent import RecentAnswers, crop_digest
 from mapex.prediction.weights import MEMBER_NAMES, WEIGHTS_DIR, load_member_with_bias
 
 
@@ -37,10 +45,11 @@ class LearnedEnsemble(Predictor):
         device: str = "cpu",
         threads: int | None = None,
         members: Sequence[str] = MEMBER_NAMES,
-        precision: Precision = "float32",
+        precision: str = "float32",
+        inference: str = "fused",
+        views: int | None = None,
     ) -> None:
-        if precision not in PRECISIONS:
-            raise ValueError(f"precision {precision!r}: choose from {', '.join(PRECISIONS)}")
+        self.inference = InferenceConfig(precision, inference, views)  # ValueError if bad
         self.precision = precision
         if threads is not None:
             torch.set_num_threads(threads)
@@ -48,19 +57,63 @@ class LearnedEnsemble(Predictor):
         loaded = [
             load_member_with_bias(Path(weights_dir) / f"{name}.pt", self.device) for name in members
         ]
-        self.models = [model for model, _ in loaded]
+        self.models = [self._runnable(model) for model, _ in loaded]
         self.logit_biases = [bias for _, bias in loaded]
         self.n_members = len(self.models)
+        self.recent = RecentAnswers()
+        self._background: ThreadPoolExecutor | None = None
+        self._background_lock = threading.Lock()
+
+    def _runnable(self, model: torch.nn.Module) -> torch.nn.Module:
+        """`model` as `self.inference` runs it: fused or plain, with its number of views."""
+        views = self.inference.views
+        if views is not None:
+            model.config = _with_views(model.config, views)
+        if self.inference.path == "fused":
+            return FusedGenerator(model).to(self.device)
+        return model
 
     def predict_members(self, observed: np.ndarray, members: Sequence[int]) -> np.ndarray:
         """Wall probabilities float32 (len(members), rows, cols) of the chosen members."""
         if observed.size == 0:
             return np.zeros((len(members), *observed.shape), dtype=np.float32)
-        inputs = torch.from_numpy(encode_observed(observed))[None].to(self.device)
-        with torch.inference_mode(), autocast(self.device, self.precision):
-            logits = [self.models[k].predict_logits(inputs)[0, 0].float() for k in members]
-            outputs = [
-                torch.sigmoid(z + self.logit_biases[k])
-                for z, k in zip(logits, members, strict=True)
+        digest = crop_digest(observed)
+        return np.stack(
+            [
+                self.recent.get_or_compute((digest, k), lambda k=k: self._run(observed, k))
+                for k in members
             ]
-        return torch.stack(outputs).cpu().numpy()
+        )
+
+    def _run(self, observed: np.ndarray, member: int) -> np.ndarray:
+        """One member's wall probabilities on `observed`: its network's forward pass(es)."""
+        inputs = torch.from_numpy(encode_observed(observed))[None].to(self.device)
+        with torch.inference_mode(), autocast(self.device, self.inference.precision):
+            logits = self.models[member].predict_logits(inputs)[0, 0].float()
+            return torch.sigmoid(logits + self.logit_biases[member]).cpu().numpy()
+
+    def predict_later(
+        self,
+        observed: np.ndarray,
+        region: Region | None = None,
+        members: Sequence[int] | None = None,
+    ) -> Callable[[], EnsemblePrediction]:
+        """`predict` in a background thread (torch releases the GIL): the caller goes on
+        exploring on the other core meanwhile, and gets the same numbers."""
+        with self._background_lock:
+            if self._background is None:
+                self._background = ThreadPoolExecutor(1, thread_name_prefix="prediction")
+            future = self._background.submit(self.predict, observed.copy(), region, members)
+        return future.result
+
+    def close(self) -> None:
+        """Stop the background thread (after its current prediction)."""
+        with self._background_lock:
+            if self._background is not None:
+                self._background.shutdown(wait=True)
+                self._background = None
+
+
+def _with_views(config: NetworkConfig, views: int) -> NetworkConfig:
+    """`config` computing `views` views (1: the map, 2: and its 180-degree turn)."""
+    return dataclasses.replace(config, average_turned_view=views == 2)

@@ -3,7 +3,7 @@ import argparse
 import pytest
 
 from mapex.config import ConfigError, ExplorationConfig, apply_overrides
-from mapex.prediction.config import PredictorTrainingConfig, add_precision_argument
+from mapex.prediction.config import PredictorTrainingConfig, add_inference_arguments
 
 
 def test_override_sets_typed_values():
@@ -53,7 +53,7 @@ def test_bad_overrides_are_one_line_errors(override, message):
 
 def test_precision_flag_defaults_to_float32_and_refuses_others(capsys):
     parser = argparse.ArgumentParser()
-    add_precision_argument(parser)
+    add_inference_arguments(parser)
     assert parser.parse_args([]).precision == "float32"
     assert parser.parse_args(["--precision", "bfloat16"]).precision == "bfloat16"
     with pytest.raises(SystemExit):
