@@ -2,8 +2,11 @@
 
 Measures, on one map (default: the largest development map, KTH 50015847):
 one LiDAR scan + integration; scoring 30 frontiers with `mapex`; one A* across
-the map; the learned ensemble; one whole re-plan of `mapex` and `mapex_plus`; a full
-`nearest` episode. Prints each median next to its target.
+the map; the learned ensemble (the network's multiply-adds, the GFLOP/s reached against
+one core's measured matrix-product peak); one whole re-plan of `mapex` and `mapex_plus`; a
+full `nearest` episode. The ensemble's figures are printed for the inference path before
+issue #50 (plain PyTorch module, two views, metric predictions in the episode's thread)
+beside today's. Prints each median next to its target.
 Benchmarks print figures; they never fail a test run.
 """
 
@@ -31,7 +34,6 @@ from mapex.methods import PlanningContext, make_method
 from mapex.navigation import cost_map, plan_path, reachable_mask
 from mapex.prediction import DEFAULT_PREDICTOR, make_predictor
 from mapex.prediction.base import EnsemblePrediction
-from mapex.prediction.config import PRECISIONS
 from mapex.sensor import cast_scan, integrate_scan, scan_and_integrate
 from mapex.simulator import Simulator
 from mapex.worlds import WorldError, load_world, start_poses
@@ -41,9 +43,10 @@ TARGETS_MS = {
     "scan + integration": 2.0,
     "score 30 frontiers (mapex)": 20.0,
     "nearest episode": 15000.0,
-    "one member, whole map, 1 thread": 800.0,
-    "four members, whole map, 2 processes": 1500.0,
+    "one member, whole map, 1 thread": 100.0,
+    "four members, whole map, 2 processes": 250.0,
     "re-plan with prediction (mapex_plus)": 1000.0,
+    "nearest episode, lama": 4000.0,
 }
 
 
@@ -155,8 +158,17 @@ def bench_astar(world, config: ExplorationConfig, repeats: int) -> None:
 
 _worker_ensemble = None  # the ensemble a benchmark worker process loaded (one per process)
 
+# The inference path before issue #50 (the training module, two views, G's metric
+# predictions computed in the episode's own thread) and the paths of now.
+OLD_PATH = {"inference": "plain", "views": 2, "background": False}
+PATHS = {
+    "old path: plain, two views": OLD_PATH,
+    "fused, two views": {"inference": "fused", "views": 2},
+    "fused, one view (default)": {"inference": "fused"},
+}
 
-def _load_worker_ensemble() -> None:
+
+def _load_worker_ensemble(options: dict) -> None:
     """Pool initializer: one torch thread and the shipped ensemble, once per process."""
     import torch
 
@@ -164,54 +176,95 @@ def _load_worker_ensemble() -> None:
 
     global _worker_ensemble
     torch.set_num_threads(1)
-    _worker_ensemble = LearnedEnsemble()
+    _worker_ensemble = LearnedEnsemble(recent_answers=0, **options)
 
 
 def _predict_member(observed: np.ndarray, member: int) -> np.ndarray:
     return _worker_ensemble.predict_members(observed, (member,))
 
 
+def network_flops(observed: np.ndarray) -> int:
+    """Floating-point operations (2 per multiply-add) of one forward pass of the shipped
+    network on `observed`, by torch's flop counter (convolutions and matrix products; the
+    FFTs' few MFLOP are not counted)."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from mapex.prediction.network import encode_observed
+    from mapex.prediction.weights import WEIGHTS_DIR, load_member
+
+    model = load_member(WEIGHTS_DIR / "g.pt")
+    with torch.inference_mode(), FlopCounterMode(display=False) as counter:
+        model(torch.from_numpy(encode_observed(observed))[None])
+    return counter.get_total_flops()
+
+
+def core_peak_gflops(size: int = 2048, repeats: int = 5) -> float:
+    """What one core reaches on a large float32 matrix product (torch.mm, one thread): the
+    practical peak the network's GFLOP/s are set against."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    ms = median_ms(lambda: torch.mm(a, b), repeats)
+    torch.set_num_threads(threads)
+    return 2 * size**3 / (ms * 1e6)
+
+
 def bench_learned(world, repeats: int) -> None:
-    """The learned ensemble on the whole map: one member on one thread; all four in two
-    worker processes of one thread each (one per core, as the services' predictor pool runs
-    them; the target), and in one process on two threads; in float32 (the targets) and one
-    member in bfloat16 (`--precision bfloat16`, no target)."""
+    """The learned ensemble on the whole map, the old path beside the new ones: one member
+    on one thread (the target); all four in two worker processes of one thread each (one
+    per core, as the services' predictor pool runs them; the target); one member in
+    bfloat16 (`--precision bfloat16`, no target). With the network's multiply-adds and the
+    GFLOP/s reached against one core's measured matrix-product peak."""
     import torch
 
     from mapex.prediction.learned import LearnedEnsemble
 
     observed = explored_state(world, ExplorationConfig(), steps=300).observed
+    flops = network_flops(observed)
+    peak = core_peak_gflops()
+    print(
+        f"network: {flops / 2e9:.2f} G multiply-adds ({flops / 1e9:.2f} GFLOP) per pass on "
+        f"{observed.shape[0]} x {observed.shape[1]}; one core's float32 matrix-product peak "
+        f"(torch.mm 2048^2, 1 thread): {peak:.0f} GFLOP/s",
+        flush=True,
+    )
     threads = torch.get_num_threads()
-    predictors = {precision: LearnedEnsemble(precision=precision) for precision in PRECISIONS}
     torch.set_num_threads(1)
-    for precision, predictor in predictors.items():
-        suffix = "" if precision == "float32" else f", {precision}"
+    for label, options in PATHS.items():
+        predictor = LearnedEnsemble(recent_answers=0, **options)
+        passes = 2 if predictor.models[0].config.average_turned_view else 1
         one = median_ms(lambda p=predictor: p.predict_members(observed, (0,)), repeats)
-        report(f"one member, whole map, 1 thread{suffix}", one)
-    torch.set_num_threads(2)
-    in_one_process = predictors["float32"]
-    four = median_ms(lambda: in_one_process.predict_members(observed, range(4)), repeats)
-    report("four members, whole map, 2 threads", four, "(one process)")
+        rate = passes * flops / (one * 1e6)
+        name = "one member, whole map, 1 thread"
+        report(name, one, f"[{label}] {rate:.0f} GFLOP/s, {100 * rate / peak:.0f} % of peak")
+    bf16 = LearnedEnsemble(recent_answers=0, precision="bfloat16")
+    one = median_ms(lambda: bf16.predict_members(observed, (0,)), repeats)
+    report("one member, whole map, 1 thread, bfloat16", one, "[fused, one view]")
     torch.set_num_threads(threads)
     context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(2, mp_context=context, initializer=_load_worker_ensemble) as pool:
+    for label, options in PATHS.items():
+        with ProcessPoolExecutor(
+            2, mp_context=context, initializer=_load_worker_ensemble, initargs=(options,)
+        ) as pool:
 
-        def four_in_processes() -> None:
-            list(pool.map(_predict_member, [observed] * 4, range(4)))
+            def four_in_processes() -> None:
+                list(pool.map(_predict_member, [observed] * 4, range(4)))
 
-        report(
-            "four members, whole map, 2 processes",
-            median_ms(four_in_processes, repeats),
-            "(1 thread each)",
-        )
+            report(
+                "four members, whole map, 2 processes",
+                median_ms(four_in_processes, repeats),
+                f"[{label}] 1 thread each",
+            )
 
 
-def bench_replan(
-    world, config: ExplorationConfig, repeats: int, method_name: str, precision: str
-) -> None:
+def bench_replan(world, config: ExplorationConfig, repeats: int, method_name: str) -> None:
     """One whole re-plan of `method_name` part-way through a run (t = 300): the learned
     ensemble on the known area plus sensor range (in process, two threads, as `python -m
-    mapex run`), frontier clusters, cost map, reachability, scoring and the path to the goal."""
+    mapex run`), frontier clusters, cost map, reachability, scoring and the path to the goal;
+    the old inference path, the default one, and the default in bfloat16."""
     import torch
 
     from mapex.prediction.learned import LearnedEnsemble
@@ -219,32 +272,39 @@ def bench_replan(
     explorer = explored_state(world, config, steps=300)
     explorer.method = make_method(method_name, config)
     threads = torch.get_num_threads()
-    explorer.predictor = LearnedEnsemble(threads=2, precision=precision)
-    suffix = "" if precision == "float32" else f", {precision}"
-    report(
-        f"re-plan with prediction ({method_name}{suffix})",
-        median_ms(lambda: explorer.replan(300), repeats),
-        f"({len(explorer.frontiers)} frontiers, t = 300)",
-    )
+    for label, options in {
+        "old path": OLD_PATH,
+        "default": {},
+        "default, bfloat16": {"precision": "bfloat16"},
+    }.items():
+        explorer.predictor = LearnedEnsemble(threads=2, recent_answers=0, **options)
+        report(
+            f"re-plan with prediction ({method_name})",
+            median_ms(lambda: explorer.replan(300), repeats),
+            f"[{label}] ({len(explorer.frontiers)} frontiers, t = 300)",
+        )
     torch.set_num_threads(threads)
 
 
-def bench_episode(world, config: ExplorationConfig, repeats: int, predictor_name: str) -> None:
+def bench_episode(
+    world, config: ExplorationConfig, repeats: int, predictor_name: str, label: str = "", **options
+) -> None:
     """A whole `nearest` episode as `python -m mapex run` runs it; the predictor only serves
     the IoU/TU metrics (G's whole-map prediction every 50 steps)."""
-    predictor = make_predictor(predictor_name)
+    predictor = make_predictor(predictor_name, **options)
     times = []
     for _ in range(repeats):
         result = run_episode(world, "nearest", predictor, 0, 0, config)
         times.append(result.wall_time_s * 1e3)
+    predictor.close()
     name = "nearest episode"  # the target line (metrics with the classical predictor)
     if predictor_name != "classical":
         name = f"nearest episode, {predictor_name}"
     report(
         name,
         statistics.median(times),
-        f"({config.steps} steps incl. metrics with '{predictor_name}', median of {repeats}; "
-        f"{statistics.median(times) / config.steps:.1f} ms/step)",
+        f"{label}({config.steps} steps incl. metrics with '{predictor_name}', median of "
+        f"{repeats}; {statistics.median(times) / config.steps:.1f} ms/step)",
     )
 
 
@@ -271,11 +331,11 @@ def main(argv: list[str] | None = None) -> int:
     bench_astar(world, config, max(args.repeats // 5, 3))
     bench_learned(world, max(args.repeats // 10, 3))
     for method_name in ("mapex", "mapex_plus"):
-        for precision in PRECISIONS:
-            bench_replan(world, config, max(args.repeats // 10, 3), method_name, precision)
+        bench_replan(world, config, max(args.repeats // 10, 3), method_name)
     if args.episodes > 0:
         bench_episode(world, config, args.episodes, "classical")
-        bench_episode(world, config, args.episodes, DEFAULT_PREDICTOR)
+        bench_episode(world, config, args.episodes, "lama", "[old path] ", **OLD_PATH)
+        bench_episode(world, config, args.episodes, DEFAULT_PREDICTOR, "[default] ")
     return 0
 
 

@@ -90,9 +90,13 @@ def predictor_options(args: argparse.Namespace) -> dict:
     inference = inference_from_args(args)
     if args.predictor == "lama":
         return inference.ensemble_options()
-    if inference != DEFAULT_INFERENCE:
-        flags = " ".join(inference.flags())
-        raise ConfigError(f"{flags}: only the 'lama' predictor runs networks")
+    given = dict(zip(inference.flags()[::2], inference.flags()[1::2], strict=True))
+    default = dict(
+        zip(DEFAULT_INFERENCE.flags()[::2], DEFAULT_INFERENCE.flags()[1::2], strict=True)
+    )
+    changed = [f"{flag} {value}" for flag, value in given.items() if default[flag] != value]
+    if changed:
+        raise ConfigError(f"{' '.join(changed)}: only the 'lama' predictor runs networks")
     return {}
 
 

@@ -5,7 +5,8 @@ On one map (default: KTH 50015847, the largest development map) it measures
    planner, through `services.up`) over the same episode in one process (same predictor,
    one torch thread), from the episode loop's wall time in each run's metrics.json;
 2. a 1000-step `mapex` episode through `services.up`: wall time of the whole command
-   (start-up included) and the peak total memory (RSS) of all its processes;
+   (start-up included) and the peak total memory (RSS) of all its processes, with the
+   workers on the inference path before issue #50 (plain module, two views) and now;
 3. two runs at once sharing the pool, with one worker per member and with two;
 4. what a hung worker costs (DESIGN: at most one timeout): a `--hung-steps` `mapex` run with
    a g1 worker that stops answering after three predictions but keeps its session, against
@@ -41,7 +42,8 @@ from services.supervisor import claim_hub
 
 MEMORY_POLL_S = 0.5
 PAGE_KIB = 4
-TARGETS = {"overhead_pct": 20.0, "mapex_wall_s": 90.0, "memory_gib": 4.0}
+TARGETS = {"overhead_pct": 20.0, "mapex_wall_s": 30.0, "memory_gib": 4.0}
+OLD_PATH_FLAGS = ("--inference", "plain", "--views", "2")  # the workers before issue #50
 
 
 def tree_rss_kib(root_pid: int) -> int:
@@ -188,11 +190,17 @@ def bench_overhead(args: argparse.Namespace, ups) -> None:
 
 
 def bench_mapex(ups) -> None:
-    """Item 2: a whole `mapex` run through services.up: wall time and peak memory."""
+    """Item 2: a whole `mapex` run through services.up: wall time and peak memory, with the
+    workers on the inference path before issue #50 (plain module, two views) and now."""
+    old = ups("mapex-old", "mapex", *OLD_PATH_FLAGS)
+    line("mapex episode via services.up, whole command [old path]", _median(old, "wall_s"), "s")
     mapex = ups("mapex", "mapex")
     wall_s, peak_gib = _median(mapex, "wall_s"), _median(mapex, "peak_gib")
     line("mapex episode via services.up, whole command", wall_s, "s", TARGETS["mapex_wall_s"])
     line("peak memory of all processes (mapex run)", peak_gib, "GiB", TARGETS["memory_gib"])
+    loop = lambda runs: statistics.median(run["runs"][0]["wall_time_s"] for run in runs)  # noqa: E731
+    line("  its episode loop [old path]", loop(old), "s")
+    line("  its episode loop", loop(mapex), "s")
 
 
 def bench_pool(args: argparse.Namespace, ups) -> None:

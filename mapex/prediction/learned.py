@@ -29,7 +29,7 @@ from mapex.prediction.base import EnsemblePrediction, Predictor, Region
 from mapex.prediction.config import InferenceConfig, NetworkConfig
 from mapex.prediction.inference import FusedGenerator
 from mapex.prediction.network import autocast, encode_observed
-from mapex.prediction.recent import RecentAnswers, crop_digest
+from mapex.prediction.recent import RECENT_ANSWERS, RecentAnswers, crop_digest
 from mapex.prediction.weights import MEMBER_NAMES, WEIGHTS_DIR, load_member_with_bias
 
 
@@ -47,7 +47,9 @@ class LearnedEnsemble(Predictor):
         members: Sequence[str] = MEMBER_NAMES,
         precision: str = "float32",
         inference: str = "fused",
-        views: int | None = None,
+        views: int = 1,
+        recent_answers: int = RECENT_ANSWERS,
+        background: bool = True,
     ) -> None:
         self.inference = InferenceConfig(precision, inference, views)  # ValueError if bad
         self.precision = precision
@@ -60,15 +62,15 @@ class LearnedEnsemble(Predictor):
         self.models = [self._runnable(model) for model, _ in loaded]
         self.logit_biases = [bias for _, bias in loaded]
         self.n_members = len(self.models)
-        self.recent = RecentAnswers()
+        self.recent = RecentAnswers(recent_answers) if recent_answers > 0 else None
+        self.background = background
         self._background: ThreadPoolExecutor | None = None
         self._background_lock = threading.Lock()
 
     def _runnable(self, model: torch.nn.Module) -> torch.nn.Module:
-        """`model` as `self.inference` runs it: fused or plain, with its number of views."""
-        views = self.inference.views
-        if views is not None:
-            model.config = _with_views(model.config, views)
+        """`model` as `self.inference` runs it: fused or plain, with its number of views
+        (which overrides the weights file's `average_turned_view`, the training default)."""
+        model.config = _with_views(model.config, self.inference.views)
         if self.inference.path == "fused":
             return FusedGenerator(model).to(self.device)
         return model
@@ -77,6 +79,8 @@ class LearnedEnsemble(Predictor):
         """Wall probabilities float32 (len(members), rows, cols) of the chosen members."""
         if observed.size == 0:
             return np.zeros((len(members), *observed.shape), dtype=np.float32)
+        if self.recent is None:
+            return np.stack([self._run(observed, k) for k in members])
         digest = crop_digest(observed)
         return np.stack(
             [
@@ -99,7 +103,10 @@ class LearnedEnsemble(Predictor):
         members: Sequence[int] | None = None,
     ) -> Callable[[], EnsemblePrediction]:
         """`predict` in a background thread (torch releases the GIL): the caller goes on
-        exploring on the other core meanwhile, and gets the same numbers."""
+        exploring on the other core meanwhile, and gets the same numbers. Without
+        `background`, computed now (as before the fused path; for benchmarks)."""
+        if not self.background:
+            return super().predict_later(observed, region, members)
         with self._background_lock:
             if self._background is None:
                 self._background = ThreadPoolExecutor(1, thread_name_prefix="prediction")

@@ -3,7 +3,12 @@ import argparse
 import pytest
 
 from mapex.config import ConfigError, ExplorationConfig, apply_overrides
-from mapex.prediction.config import PredictorTrainingConfig, add_inference_arguments
+from mapex.prediction.config import (
+    InferenceConfig,
+    PredictorTrainingConfig,
+    add_inference_arguments,
+    inference_from_args,
+)
 
 
 def test_override_sets_typed_values():
@@ -59,3 +64,19 @@ def test_precision_flag_defaults_to_float32_and_refuses_others(capsys):
     with pytest.raises(SystemExit):
         parser.parse_args(["--precision", "float16"])
     assert "invalid choice: 'float16'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "config",
+    [InferenceConfig(), InferenceConfig("bfloat16", "plain", 2), InferenceConfig(views=2)],
+    ids=str,
+)
+def test_inference_flags_give_back_the_configuration_a_worker_is_spawned_with(config):
+    parser = argparse.ArgumentParser()
+    add_inference_arguments(parser)
+    assert inference_from_args(parser.parse_args([])) == InferenceConfig()
+    assert inference_from_args(parser.parse_args(list(config.flags()))) == config
+
+
+def test_inference_defaults_to_the_fused_path_with_one_view_in_float32():
+    assert InferenceConfig() == InferenceConfig("float32", "fused", 1)

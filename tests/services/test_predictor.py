@@ -370,19 +370,6 @@ def test_a_benched_worker_is_back_once_a_health_probe_finds_it_idle(rogue_pair):
         assert client.predict(crop, members=(0,)).workers == ("slow",)
 
 
-def test_a_crop_asked_again_is_answered_from_the_recent_ones():
-    predictor = SlowPredictor(delay_s=0.0)
-    server = MemberServer(predictor, "g", "w0")
-    crop = partly_observed((24, 30))
-    first = server.answer(PredictRequest(1, crop).encode())
-    again = server.answer(PredictRequest(2, crop.copy()).encode())  # a teammate's request
-    other = server.answer(PredictRequest(3, partly_observed((24, 30), seed=5)).encode())
-    assert predictor.calls == 2 and server.answered == 3
-    assert again.request_id == 2
-    np.testing.assert_array_equal(again.probabilities_u8, first.probabilities_u8)
-    assert other.request_id == 3
-
-
 def test_health_says_how_long_the_current_prediction_runs():
     server = MemberServer(SlowPredictor(delay_s=0.6), "g3", "w0")
     assert server.health(queued=0) == HealthReply("g3", "w0", 0.0, 0, 0, 0)

@@ -78,6 +78,59 @@ def test_bfloat16_is_close_to_float32_deterministic_and_copies_known_cells(rando
     np.testing.assert_array_equal(fast, mixed.predict(observed).members)
 
 
+def test_the_same_crop_asked_again_is_answered_from_the_recent_ones(random_weights):
+    """G's metric prediction and a re-plan's on the same map, or a team's planners asking
+    for one crop: one forward pass."""
+    predictor = LearnedEnsemble(random_weights)
+    observed = partly_observed()
+    first = predictor.predict(observed).members
+    again = predictor.predict(observed.copy(), members=(0,)).main
+    assert predictor.recent.hits == 1
+    np.testing.assert_array_equal(again, first[0])
+    predictor.predict(partly_observed((40, 61)), members=(0,))
+    assert predictor.recent.hits == 1
+    uncached = LearnedEnsemble(random_weights, recent_answers=0)
+    assert uncached.recent is None
+    np.testing.assert_array_equal(uncached.predict(observed).members, first)
+
+
+def test_a_later_prediction_runs_in_the_background_with_the_same_numbers(random_weights):
+    predictor = LearnedEnsemble(random_weights, recent_answers=0)
+    observed = partly_observed()
+    later = predictor.predict_later(observed, members=(0,))
+    observed[:] = UNKNOWN  # the caller's map changes meanwhile; the prediction is of the old
+    expected = LearnedEnsemble(random_weights).predict(partly_observed(), members=(0,))
+    np.testing.assert_array_equal(later().members, expected.members)
+    predictor.close()
+    assert predictor._background is None
+    synchronous = LearnedEnsemble(random_weights, background=False)
+    np.testing.assert_array_equal(
+        synchronous.predict_later(partly_observed(), members=(0,))().members, expected.members
+    )
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"inference": "onnx"}, "inference 'onnx'.*fused, plain"),
+        ({"views": 3}, "views 3"),
+    ],
+)
+def test_an_unknown_inference_setting_is_refused(random_weights, options, message):
+    with pytest.raises(ValueError, match=message):
+        LearnedEnsemble(random_weights, **options)
+
+
+def test_the_plain_path_and_two_views_are_there_on_request(random_weights):
+    observed = partly_observed()
+    fused = LearnedEnsemble(random_weights).predict(observed).members
+    plain = LearnedEnsemble(random_weights, inference="plain").predict(observed).members
+    np.testing.assert_allclose(fused, plain, atol=1e-2)  # the wire's uint8 levels apart at most
+    two = LearnedEnsemble(random_weights, views=2)
+    assert all(model.config.average_turned_view for model in two.models)
+    assert not any(m.config.average_turned_view for m in LearnedEnsemble(random_weights).models)
+
+
 def test_an_unknown_precision_is_refused(random_weights):
     with pytest.raises(ValueError, match="float16.*float32, bfloat16"):
         LearnedEnsemble(random_weights, precision="float16")
