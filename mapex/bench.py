@@ -163,8 +163,8 @@ _worker_ensemble = None  # the ensemble a benchmark worker process loaded (one p
 OLD_PATH = {"inference": "plain", "views": 2, "background": False}
 PATHS = {
     "old path: plain, two views": OLD_PATH,
-    "fused, two views": {"inference": "fused", "views": 2},
-    "fused, one view (default)": {"inference": "fused"},
+    "fused, two views (default)": {},
+    "fused, one view (--views 1)": {"views": 1},
 }
 
 
@@ -242,7 +242,7 @@ def bench_learned(world, repeats: int) -> None:
         report(name, one, f"[{label}] {rate:.0f} GFLOP/s, {100 * rate / peak:.0f} % of peak")
     bf16 = LearnedEnsemble(recent_answers=0, precision="bfloat16")
     one = median_ms(lambda: bf16.predict_members(observed, (0,)), repeats)
-    report("one member, whole map, 1 thread, bfloat16", one, "[fused, one view]")
+    report("one member, whole map, 1 thread, bfloat16", one, "[fused, two views]")
     torch.set_num_threads(threads)
     context = multiprocessing.get_context("spawn")
     for label, options in PATHS.items():

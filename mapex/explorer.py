@@ -176,21 +176,25 @@ class Explorer:
         self.stats.approach_goals += int(goal.approach)
 
     def _method_for(self, t: int, prediction: EnsemblePrediction | None) -> Method:
-        """The method, or the observed-map fallback when too few members answered."""
+        """The method, or the observed-map fallback when too few members answered: a method
+        of G_1..G_n's variance needs two of them, one of G's map alone needs G."""
         if prediction is not None and prediction.workers is not None:
             self.stats.member_workers.append((t, prediction.served_by()))
-        if prediction is None or len(prediction.answered) == self.predictor.n_members:
+        wanted = self.method.prediction_members(self.predictor.n_members) if prediction else ()
+        if prediction is None or len(prediction.answered) == len(wanted):
             return self.method
         self.stats.degraded_steps.append(t)
-        if prediction.has_variance:
+        if prediction.has_variance if self.method.reads_members else 0 in prediction.answered:
             return self.method
         self.stats.fallback_steps.append(t)
         return self.fallback
 
     def predict(self) -> EnsemblePrediction:
-        """The ensemble on the region that matters: known area plus sensor range."""
+        """The members the method reads, on the region that matters: known area plus sensor
+        range."""
         region = known_region(self.observed, self.config.sensor.range_cells)
-        return self.predictor.predict(self.observed, region)
+        members = self.method.prediction_members(self.predictor.n_members)
+        return self.predictor.predict(self.observed, region, members)
 
     @staticmethod
     def _cell(cell: np.ndarray) -> Cell:

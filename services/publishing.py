@@ -100,7 +100,9 @@ class RunPublisher:
             self._hand_over("goal", GoalMessage(t, goal))
             prediction = explorer.prediction
             if prediction is not None and len(prediction.answered):
-                for kind in ("main", "mean", "variance"):
+                # P_t only when G was asked and answered (a method may read the members only)
+                kinds = ("main",) if prediction.answered[0] == 0 else ()
+                for kind in (*kinds, "mean", "variance"):
                     values = np.clip(getattr(prediction, kind), 0.0, 1.0)
                     self._hand_over(f"prediction/{kind}", _Lazy(t, kind, values))
         path = explorer.path if explorer.path is not None else np.zeros((0, 2), dtype=np.int64)

@@ -96,6 +96,10 @@ class Method(ABC):
 
     name: str = ""
     uses_prediction: bool = False
+    # Which rows of the ensemble prediction the method reads: G's map P_t (`main`) and/or
+    # the mean and variance of G_1..G_n (`members`). A re-plan asks only for those.
+    reads_main: bool = True
+    reads_members: bool = True
     replan_every_steps: int | None = None  # re-plan periodically even if the goal is kept
     # the goal-keeping rule of docs/algorithms.md#goals; UPEN's goals are not frontiers
     drop_goal_without_unknown: bool = True
@@ -107,6 +111,13 @@ class Method(ABC):
     @abstractmethod
     def select_goal(self, context: PlanningContext) -> Goal | None:
         """The next goal, or None when there is nothing left to explore."""
+
+    def prediction_members(self, n_members: int) -> tuple[int, ...]:
+        """The ensemble members a re-plan must predict (member 0 is G): only the rows the
+        method reads, so no forward pass is spent on a map it never looks at."""
+        main = (0,) if self.reads_main else ()
+        members = tuple(range(1, n_members)) if self.reads_members else ()
+        return main + members
 
 
 class FrontierScorer(Method):

@@ -21,6 +21,7 @@ class IgHector(FrontierScorer):
 
     name = "ig_hector"
     uses_prediction = True
+    reads_members = False  # P_t of G only
 
     def score(self, context: PlanningContext) -> np.ndarray:
         cfg = context.config.visibility

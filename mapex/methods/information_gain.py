@@ -55,6 +55,7 @@ class MapEx(FrontierScorer):
 
     name = "mapex"
     uses_prediction = True
+    reads_main = False  # V_t and M_t of G_1..G_n only
 
     def score(self, context: PlanningContext) -> np.ndarray:
         return mapex_gain(context) / context.frontier_distances()
@@ -76,6 +77,7 @@ class NoVariance(FrontierScorer):
 
     name = "no_variance"
     uses_prediction = True
+    reads_members = False  # P_t of G only
 
     def score(self, context: PlanningContext) -> np.ndarray:
         weights = context.unknown_weights(1.0)
@@ -99,6 +101,7 @@ class NoVisibility(FrontierScorer):
 
     name = "no_visibility"
     uses_prediction = True
+    reads_main = False  # V_t and M_t of G_1..G_n only
 
     def score(self, context: PlanningContext) -> np.ndarray:
         variance = context.unknown_weights(context.prediction.variance)

@@ -60,6 +60,7 @@ class MapExPath(FrontierScorer):
 
     name = "mapex_path"
     uses_prediction = True
+    reads_main = False  # V_t and M_t of G_1..G_n only
 
     def score(self, context: PlanningContext) -> np.ndarray:
         return per_path_cost(mapex_gain(context), frontier_paths(context).cost)
@@ -70,6 +71,7 @@ class MapExPlus(FrontierScorer):
 
     name = "mapex_plus"
     uses_prediction = True
+    reads_main = False  # V_t and M_t of G_1..G_n only
 
     def __init__(self, config: ExplorationConfig) -> None:
         super().__init__(config)

@@ -23,6 +23,7 @@ class Upen(Method):
 
     name = "upen"
     uses_prediction = True
+    reads_main = False  # V_t and M_t of G_1..G_n only
     drop_goal_without_unknown = False
 
     def __init__(self, config) -> None:

@@ -17,6 +17,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from mapex.prediction.network import (
+    CODE_CHANNELS,
+    OUTSIDE_MAP,
     FastFourierConv,
     FourierUnit,
     LamaGenerator,
@@ -163,13 +165,19 @@ class SingleOutputConv(nn.Module):
         return out[:, None]
 
 
-def _unshuffled_channels_last(x: torch.Tensor, factor: int) -> torch.Tensor:
-    """`nn.PixelUnshuffle(factor)(x)` written straight into channels-last memory (one copy)."""
-    batch, channels, rows, cols = x.shape
-    blocks = x.view(batch, channels, rows // factor, factor, cols // factor, factor)
-    nhwc = blocks.permute(0, 2, 4, 1, 3, 5).reshape(
-        batch, rows // factor, cols // factor, channels * factor * factor
-    )
+def _one_hot(codes: torch.Tensor, dim: int) -> torch.Tensor:
+    """float32 one-hot of `codes` along a new dimension `dim`: free, occupied, unknown, as
+    `encode_observed` (any other code, OUTSIDE_MAP, all zeros)."""
+    return torch.stack([codes == code for code in CODE_CHANNELS], dim=dim).float()
+
+
+def _unshuffled_one_hot(codes: torch.Tensor, factor: int) -> torch.Tensor:
+    """`nn.PixelUnshuffle(factor)(encode_observed(codes))`, channels-last: the codes are
+    reordered (one byte a cell), then one-hot encoded in place in the stem's layout."""
+    batch, rows, cols = codes.shape
+    blocks = codes.view(batch, rows // factor, factor, cols // factor, factor)
+    blocks = blocks.permute(0, 1, 3, 2, 4)  # (batch, rows/f, cols/f, f, f)
+    nhwc = _one_hot(blocks, dim=3).reshape(batch, rows // factor, cols // factor, -1)
     return nhwc.permute(0, 3, 1, 2)
 
 
@@ -204,13 +212,17 @@ class FusedGenerator(nn.Module):
         self.refine_out = SingleOutputConv(refine_out)
         self.eval()
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """float (batch, 3, rows, cols) -> wall logits (batch, 1, rows, cols)."""
-        rows, cols = x.shape[-2:]
+    def forward(self, codes: torch.Tensor) -> torch.Tensor:
+        """Observed codes uint8 (batch, rows, cols) -> wall logits (batch, 1, rows, cols): the
+        training module's logits for `encode_observed(codes)`. Codes go in as they are, and
+        are one-hot encoded straight into the layouts the stem and the refinement read, so
+        no full-resolution float image is made, padded and reordered."""
+        batch, rows, cols = codes.shape
         factor = self.config.downscale
-        if rows % factor or cols % factor:
-            x = F.pad(x, (0, (-cols) % factor, 0, (-rows) % factor))  # zeros: beyond the border
-        trunk = self.stem(_unshuffled_channels_last(x, factor))
+        if rows % factor or cols % factor:  # OUTSIDE_MAP encodes as zeros: beyond the border
+            padding = (0, (-cols) % factor, 0, (-rows) % factor)
+            codes = F.pad(codes, padding, value=int(OUTSIDE_MAP))
+        trunk = self.stem(_unshuffled_one_hot(codes, factor))
         local, global_ = (
             part.contiguous(memory_format=torch.channels_last)
             for part in trunk.split([self.n_local, trunk.shape[1] - self.n_local], dim=1)
@@ -220,17 +232,16 @@ class FusedGenerator(nn.Module):
             local, global_ = local.add_(new_local), global_.add_(new_global)
         trunk = torch.cat([local, global_], dim=1)
         coarse = self.shuffle(self.head_out(self.head_conv(trunk)))
-        return self._refined(coarse, x)[..., :rows, :cols]
+        return self._refined(coarse, codes)[..., :rows, :cols]
 
-    def predict_logits(self, x: torch.Tensor) -> torch.Tensor:
-        """As `LamaGenerator.predict_logits`: one view, or the mean of the map's and its
-        180-degree turn's (`average_turned_view`)."""
+    def predict_logits(self, codes: torch.Tensor) -> torch.Tensor:
+        """As `LamaGenerator.predict_logits`, from codes (batch, rows, cols): one view, or
+        the mean of the map's and its 180-degree turn's (`average_turned_view`)."""
         if not self.config.average_turned_view:
-            return self(x)
-        turned = (2, 3)
-        return (self(x) + self(x.flip(turned)).flip(turned)) / 2
+            return self(codes)
+        return (self(codes) + self(codes.flip((1, 2))).flip((2, 3))) / 2
 
-    def _refined(self, coarse: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    def _refined(self, coarse: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
         """coarse + refine(cat(coarse, x)), `strip_rows` output rows at a time. The two 3x3
         convolutions need two rows of input on either side of a strip; rows beyond the
         map's edge are zeros, for the input and for the hidden layer alike."""
@@ -240,10 +251,10 @@ class FusedGenerator(nn.Module):
         for start in range(0, rows, self.strip_rows):
             stop = min(start + self.strip_rows, rows)
             first, last = max(start - halo, 0), min(stop + halo, rows)  # input rows in the map
-            piece = coarse.new_zeros(batch, stop - start + 2 * halo, cols, 1 + x.shape[1])
+            piece = coarse.new_zeros(batch, stop - start + 2 * halo, cols, 1 + len(CODE_CHANNELS))
             at = first - (start - halo)
             piece[:, at : at + last - first, :, :1] = coarse[:, :, first:last].permute(0, 2, 3, 1)
-            piece[:, at : at + last - first, :, 1:] = x[:, :, first:last].permute(0, 2, 3, 1)
+            piece[:, at : at + last - first, :, 1:] = _one_hot(codes[:, first:last, :cols], -1)
             hidden = self.refine_in(piece.permute(0, 3, 1, 2))
             if start == 0:
                 hidden[:, :, 0] = 0  # the hidden layer's row above the map

@@ -47,7 +47,7 @@ class LearnedEnsemble(Predictor):
         members: Sequence[str] = MEMBER_NAMES,
         precision: str = "float32",
         inference: str = "fused",
-        views: int = 1,
+        views: int = 2,
         recent_answers: int = RECENT_ANSWERS,
         background: bool = True,
     ) -> None:
@@ -91,7 +91,12 @@ class LearnedEnsemble(Predictor):
 
     def _run(self, observed: np.ndarray, member: int) -> np.ndarray:
         """One member's wall probabilities on `observed`: its network's forward pass(es)."""
-        inputs = torch.from_numpy(encode_observed(observed))[None].to(self.device)
+        if self.inference.path == "fused":
+            # codes; a read-only array (a decoded message's) is copied for torch
+            inputs = torch.from_numpy(np.require(observed, np.uint8, ["C", "W"]))[None]
+        else:
+            inputs = torch.from_numpy(encode_observed(observed))[None]  # one-hot image
+        inputs = inputs.to(self.device)
         with torch.inference_mode(), autocast(self.device, self.inference.precision):
             logits = self.models[member].predict_logits(inputs)[0, 0].float()
             return torch.sigmoid(logits + self.logit_biases[member]).cpu().numpy()

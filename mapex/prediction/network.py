@@ -32,15 +32,14 @@ from mapex.prediction.config import NetworkConfig, Precision
 
 INPUT_CHANNELS = 3  # free, occupied, unknown (one-hot of the observed codes)
 OUTSIDE_MAP = np.uint8(255)  # not a map code: a cell beyond the map's border (all-zero encoding)
+CODE_CHANNELS = (int(FREE), int(OCCUPIED), int(UNKNOWN))  # the code of each input channel
 
 
 def encode_observed(observed: np.ndarray) -> np.ndarray:
     """Observed codes (rows, cols) -> float32 one-hot (3, rows, cols): free, occupied, unknown.
 
     Any other value (`OUTSIDE_MAP`) encodes as all zeros: beyond the map's border."""
-    return np.stack([observed == FREE, observed == OCCUPIED, observed == UNKNOWN]).astype(
-        np.float32
-    )
+    return np.stack([observed == code for code in CODE_CHANNELS]).astype(np.float32)
 
 
 def autocast(device: torch.device, precision: Precision) -> torch.autocast:

@@ -68,7 +68,7 @@ def test_precision_flag_defaults_to_float32_and_refuses_others(capsys):
 
 @pytest.mark.parametrize(
     "config",
-    [InferenceConfig(), InferenceConfig("bfloat16", "plain", 2), InferenceConfig(views=2)],
+    [InferenceConfig(), InferenceConfig("bfloat16", "plain", 1), InferenceConfig(views=1)],
     ids=str,
 )
 def test_inference_flags_give_back_the_configuration_a_worker_is_spawned_with(config):
@@ -78,5 +78,5 @@ def test_inference_flags_give_back_the_configuration_a_worker_is_spawned_with(co
     assert inference_from_args(parser.parse_args(list(config.flags()))) == config
 
 
-def test_inference_defaults_to_the_fused_path_with_one_view_in_float32():
-    assert InferenceConfig() == InferenceConfig("float32", "fused", 1)
+def test_inference_defaults_to_the_fused_path_with_two_views_in_float32():
+    assert InferenceConfig() == InferenceConfig("float32", "fused", 2)

@@ -4,10 +4,14 @@ import numpy as np
 import pytest
 
 from mapex.config import ExplorationConfig
+from mapex.episode import run_episode
 from mapex.explorer import Explorer
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
-from mapex.methods import make_method
+from mapex.methods import METHODS, make_method
+from mapex.methods.base import Method
+from mapex.prediction import make_predictor
 from mapex.prediction.base import Predictor
+from mapex.worlds import load_world
 
 
 def explorer_in_corridor() -> Explorer:
@@ -112,3 +116,60 @@ def test_missing_members_are_recorded_and_too_few_fall_back_to_observed_map_scor
     assert explorer.stats.degraded_steps == ([7] if degraded else [])
     assert explorer.stats.fallback_steps == ([7] if fallback else [])
     assert explorer.frontier_scores is not None and len(explorer.frontier_scores) == 1
+
+
+class _RecordingPool(_PartialPool):
+    """Every member answers; the members of each request are recorded."""
+
+    def __init__(self) -> None:
+        super().__init__((0, 1, 2, 3))
+        self.asked: list[tuple[int, ...]] = []
+
+    def predict(self, observed, region=None, members=None):
+        self.asked.append(tuple(members))
+        return super().predict(observed, region, members)
+
+
+@pytest.mark.parametrize(
+    ("method", "members"),
+    [
+        ("mapex", (1, 2, 3)),
+        ("no_visibility", (1, 2, 3)),
+        ("mapex_path", (1, 2, 3)),
+        ("mapex_plus", (1, 2, 3)),
+        ("upen", (1, 2, 3)),
+        ("no_variance", (0,)),
+        ("ig_hector", (0,)),
+        ("deterministic", (0, 1, 2, 3)),
+    ],
+)
+def test_a_replan_predicts_only_the_members_its_method_reads(method, members):
+    explorer = explorer_in_corridor()
+    explorer.method = make_method(method, ExplorationConfig())
+    explorer.predictor = _RecordingPool()
+    assert explorer.next_motion(7) is not None
+    assert explorer.predictor.asked == [members]
+    assert explorer.stats.degraded_steps == []
+
+
+@pytest.mark.parametrize(("answering", "fallback"), [((0,), False), ((1, 2, 3), True)])
+def test_a_method_of_gs_map_alone_needs_g(answering, fallback):
+    explorer = explorer_in_corridor()
+    explorer.method = make_method("no_variance", ExplorationConfig())
+    explorer.predictor = _PartialPool(answering)
+    assert explorer.next_motion(7) is not None
+    assert explorer.stats.degraded_steps == ([7] if fallback else [])
+    assert explorer.stats.fallback_steps == ([7] if fallback else [])
+
+
+@pytest.mark.parametrize("method", sorted(name for name, m in METHODS.items() if m.uses_prediction))
+def test_predicting_only_the_members_read_changes_no_run(method, monkeypatch):
+    """The rows a method does not read never reach its choices: the same run as when every
+    member is predicted (classical ensemble, seeded)."""
+    world, config = load_world("generated:1"), ExplorationConfig(steps=150)
+    predictor = make_predictor("classical")
+    lean = run_episode(world, method, predictor, 0, 0, config)
+    monkeypatch.setattr(Method, "prediction_members", lambda self, n: tuple(range(n)))
+    full = run_episode(world, method, predictor, 0, 0, config)
+    np.testing.assert_array_equal(lean.trajectory, full.trajectory)
+    assert lean.curves.coverage == full.curves.coverage

@@ -126,9 +126,9 @@ def test_the_plain_path_and_two_views_are_there_on_request(random_weights):
     fused = LearnedEnsemble(random_weights).predict(observed).members
     plain = LearnedEnsemble(random_weights, inference="plain").predict(observed).members
     np.testing.assert_allclose(fused, plain, atol=1e-2)  # the wire's uint8 levels apart at most
-    two = LearnedEnsemble(random_weights, views=2)
-    assert all(model.config.average_turned_view for model in two.models)
-    assert not any(m.config.average_turned_view for m in LearnedEnsemble(random_weights).models)
+    one = LearnedEnsemble(random_weights, views=1)
+    assert not any(model.config.average_turned_view for model in one.models)
+    assert all(m.config.average_turned_view for m in LearnedEnsemble(random_weights).models)
 
 
 def test_an_unknown_precision_is_refused(random_weights):
