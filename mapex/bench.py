@@ -5,7 +5,7 @@ one LiDAR scan + integration; scoring 30 frontiers with `mapex`; one A* across
 the map; the learned ensemble (the network's multiply-adds, the GFLOP/s reached against
 one core's measured matrix-product peak); one whole re-plan of `mapex` and `mapex_plus`; a
 full `nearest` episode. The ensemble's figures are printed for the inference path before
-issue #50 (plain PyTorch module, two views, metric predictions in the episode's thread)
+issue #50 (plain PyTorch module, two views)
 beside today's. Prints each median next to its target.
 Benchmarks print figures; they never fail a test run.
 """
@@ -158,9 +158,8 @@ def bench_astar(world, config: ExplorationConfig, repeats: int) -> None:
 
 _worker_ensemble = None  # the ensemble a benchmark worker process loaded (one per process)
 
-# The inference path before issue #50 (the training module, two views, G's metric
-# predictions computed in the episode's own thread) and the paths of now.
-OLD_PATH = {"inference": "plain", "views": 2, "background": False}
+# The inference path before issue #50 (the training module, two views) and the paths of now.
+OLD_PATH = {"inference": "plain", "views": 2}
 PATHS = {
     "old path: plain, two views": OLD_PATH,
     "fused, two views (default)": {},
@@ -212,7 +211,27 @@ def core_peak_gflops(size: int = 2048, repeats: int = 5) -> float:
     return 2 * size**3 / (ms * 1e6)
 
 
-def bench_learned(world, repeats: int) -> None:
+def profile_member(observed: np.ndarray, rows: int = 12) -> None:
+    """Where one member's whole-map prediction (default path, one thread) spends its time:
+    torch's profiler, operators grouped by input shape, the most expensive first."""
+    import torch
+
+    from mapex.prediction.learned import LearnedEnsemble
+
+    predictor = LearnedEnsemble(members=("g",), recent_answers=0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    predictor.predict_members(observed, (0,))
+    with torch.profiler.profile(record_shapes=True) as profile:
+        predictor.predict_members(observed, (0,))
+    torch.set_num_threads(threads)
+    table = profile.key_averages(group_by_input_shape=True).table(
+        sort_by="self_cpu_time_total", row_limit=rows, max_name_column_width=28
+    )
+    print(table, flush=True)
+
+
+def bench_learned(world, repeats: int, profile: bool = False) -> None:
     """The learned ensemble on the whole map, the old path beside the new ones: one member
     on one thread (the target); all four in two worker processes of one thread each (one
     per core, as the services' predictor pool runs them; the target); one member in
@@ -244,6 +263,8 @@ def bench_learned(world, repeats: int) -> None:
     one = median_ms(lambda: bf16.predict_members(observed, (0,)), repeats)
     report("one member, whole map, 1 thread, bfloat16", one, "[fused, two views]")
     torch.set_num_threads(threads)
+    if profile:
+        profile_member(observed)
     context = multiprocessing.get_context("spawn")
     for label, options in PATHS.items():
         with ProcessPoolExecutor(
@@ -318,6 +339,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=50, help="repeats of the small benchmarks")
     parser.add_argument("--episodes", type=int, default=3, help="repeats of the episode benchmark")
     parser.add_argument("--steps", type=int, default=1000, help="episode length")
+    parser.add_argument(
+        "--profile", action="store_true", help="also print where one member's prediction spends"
+    )
     args = parser.parse_args(argv)
     try:
         world = load_world(args.world)
@@ -329,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
     bench_scan(world, config, args.repeats)
     bench_scoring(world, config, args.repeats)
     bench_astar(world, config, max(args.repeats // 5, 3))
-    bench_learned(world, max(args.repeats // 10, 3))
+    bench_learned(world, max(args.repeats // 10, 3), args.profile)
     for method_name in ("mapex", "mapex_plus"):
         bench_replan(world, config, max(args.repeats // 10, 3), method_name)
     if args.episodes > 0:

@@ -10,22 +10,19 @@ path by default (`mapex.prediction.inference`), the plain training module on req
 one or two views, float32 or bfloat16 (docs/benchmarks.md#the-predictor).
 
 The last few answers are kept by crop digest, so the same crop asked twice (G's metric
-prediction and a re-plan's on the same map, or the planners of a team) costs one pass;
-`predict_later` computes in a background thread, so exploration goes on meanwhile.
+prediction and a re-plan's on the same map, or the planners of a team) costs one pass.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import threading
-from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from mapex.prediction.base import EnsemblePrediction, Predictor, Region
+from mapex.prediction.base import Predictor
 from mapex.prediction.config import InferenceConfig, NetworkConfig
 from mapex.prediction.inference import FusedGenerator
 from mapex.prediction.network import autocast, encode_observed
@@ -49,7 +46,6 @@ class LearnedEnsemble(Predictor):
         inference: str = "fused",
         views: int = 2,
         recent_answers: int = RECENT_ANSWERS,
-        background: bool = True,
     ) -> None:
         self.inference = InferenceConfig(precision, inference, views)  # ValueError if bad
         self.precision = precision
@@ -63,9 +59,6 @@ class LearnedEnsemble(Predictor):
         self.logit_biases = [bias for _, bias in loaded]
         self.n_members = len(self.models)
         self.recent = RecentAnswers(recent_answers) if recent_answers > 0 else None
-        self.background = background
-        self._background: ThreadPoolExecutor | None = None
-        self._background_lock = threading.Lock()
 
     def _runnable(self, model: torch.nn.Module) -> torch.nn.Module:
         """`model` as `self.inference` runs it: fused or plain, with its number of views
@@ -100,30 +93,6 @@ class LearnedEnsemble(Predictor):
         with torch.inference_mode(), autocast(self.device, self.inference.precision):
             logits = self.models[member].predict_logits(inputs)[0, 0].float()
             return torch.sigmoid(logits + self.logit_biases[member]).cpu().numpy()
-
-    def predict_later(
-        self,
-        observed: np.ndarray,
-        region: Region | None = None,
-        members: Sequence[int] | None = None,
-    ) -> Callable[[], EnsemblePrediction]:
-        """`predict` in a background thread (torch releases the GIL): the caller goes on
-        exploring on the other core meanwhile, and gets the same numbers. Without
-        `background`, computed now (as before the fused path; for benchmarks)."""
-        if not self.background:
-            return super().predict_later(observed, region, members)
-        with self._background_lock:
-            if self._background is None:
-                self._background = ThreadPoolExecutor(1, thread_name_prefix="prediction")
-            future = self._background.submit(self.predict, observed.copy(), region, members)
-        return future.result
-
-    def close(self) -> None:
-        """Stop the background thread (after its current prediction)."""
-        with self._background_lock:
-            if self._background is not None:
-                self._background.shutdown(wait=True)
-                self._background = None
 
 
 def _with_views(config: NetworkConfig, views: int) -> NetworkConfig:

@@ -2,9 +2,8 @@
 computed once (a re-plan and G's metric prediction on one map, a team's planners asking
 for one epoch's map, planners on several machines sharing a worker).
 
-An answer being computed is shared too: a second caller waits for the first's result
-instead of starting the same forward pass (the in-process ensemble predicts G's metric
-map in a background thread while the explorer may ask for the same crop)."""
+An answer being computed is shared too: a second caller (another thread) waits for the
+first's result instead of starting the same forward pass."""
 
 from __future__ import annotations
 

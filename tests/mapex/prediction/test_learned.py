@@ -94,21 +94,6 @@ def test_the_same_crop_asked_again_is_answered_from_the_recent_ones(random_weigh
     np.testing.assert_array_equal(uncached.predict(observed).members, first)
 
 
-def test_a_later_prediction_runs_in_the_background_with_the_same_numbers(random_weights):
-    predictor = LearnedEnsemble(random_weights, recent_answers=0)
-    observed = partly_observed()
-    later = predictor.predict_later(observed, members=(0,))
-    observed[:] = UNKNOWN  # the caller's map changes meanwhile; the prediction is of the old
-    expected = LearnedEnsemble(random_weights).predict(partly_observed(), members=(0,))
-    np.testing.assert_array_equal(later().members, expected.members)
-    predictor.close()
-    assert predictor._background is None
-    synchronous = LearnedEnsemble(random_weights, background=False)
-    np.testing.assert_array_equal(
-        synchronous.predict_later(partly_observed(), members=(0,))().members, expected.members
-    )
-
-
 @pytest.mark.parametrize(
     "options, message",
     [
