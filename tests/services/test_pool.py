@@ -6,6 +6,7 @@ import argparse
 
 import pytest
 
+from mapex.prediction.config import InferenceConfig
 from services.config import ServicesConfig
 from services.pool import hub_session_config, parse_member_list, worker_specs
 
@@ -30,13 +31,15 @@ def test_worker_specs_name_replicas_and_restart_them():
     assert [s.name for s in worker_specs(("g",), 1, 1, [])] == ["predictor-g"]
 
 
-def test_worker_specs_pass_threads_and_precision():
-    (spec,) = worker_specs(("g1",), 1, 3, [], "bfloat16", id_prefix="up7")
+def test_worker_specs_pass_threads_and_the_inference_configuration():
+    inference = InferenceConfig("bfloat16", "plain", 1)
+    (spec,) = worker_specs(("g1",), 1, 3, [], inference, id_prefix="up7")
     assert spec.args == ("--member", "g1", "--worker-id", "up7-g1-0", "--threads", "3",
-                         "--precision", "bfloat16")  # fmt: skip
+                         "--precision", "bfloat16", "--inference", "plain",
+                         "--views", "1")  # fmt: skip
     assert (spec.member, spec.worker_id) == ("g1", "up7-g1-0")
     (default,) = worker_specs(("g",), 1, 1, [])
-    assert default.args[-2:] == ("--precision", "float32")
+    assert default.args[-6:] == ("--precision", "float32", "--inference", "fused", "--views", "2")
 
 
 def test_a_given_hub_is_joined_and_passed_to_every_child():
