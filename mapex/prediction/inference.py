@@ -1,13 +1,12 @@
 """The fused inference path: a trained `LamaGenerator` rebuilt for fast CPU inference.
 
 Same arithmetic, less work and less memory traffic (docs/benchmarks.md#the-predictor):
-every batch norm is folded into the convolution before it, the frequency-domain 1x1
-convolution is one matrix product on the stacked spectrum, and the full-resolution
-refinement runs in strips of rows small enough to stay in the CPU's cache (its
-16-channel activations would otherwise be written to and read back from memory).
-Its logits equal the training module's to float32 rounding (a test holds them to 1e-3
-in probability on development maps). It runs on PyTorch: ONNX Runtime, OpenVINO and
-torch.compile were measured on this network and lost (docs/experiments.md).
+batch norms folded into the convolutions, 1x1 convolutions as matrix products, the FFC
+channel groups kept apart, the full-resolution refinement in strips of rows that stay in
+the CPU's cache, and observed codes one-hot encoded straight into the layouts the network
+reads. Its logits equal the training module's to float32 rounding (a test holds every
+shipped member to 1e-3 in probability). It runs on PyTorch: ONNX Runtime, OpenVINO and
+torch.compile were measured on this network and lost on its FFTs (docs/experiments.md).
 """
 
 from __future__ import annotations
