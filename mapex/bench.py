@@ -5,8 +5,8 @@ one LiDAR scan + integration; scoring 30 frontiers with `mapex`; one A* across
 the map; the learned ensemble (the network's multiply-adds, the GFLOP/s reached against
 one core's measured matrix-product peak); one whole re-plan of `mapex` and `mapex_plus`; a
 full `nearest` episode. The ensemble's figures are printed for the inference path before
-issue #50 (plain PyTorch module, two views)
-beside today's. Prints each median next to its target.
+issue #50 (plain PyTorch module, two views) beside today's. Prints each median next to its
+target.
 Benchmarks print figures; they never fail a test run.
 """
 

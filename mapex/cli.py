@@ -90,11 +90,12 @@ def predictor_options(args: argparse.Namespace) -> dict:
     inference = inference_from_args(args)
     if args.predictor == "lama":
         return inference.ensemble_options()
-    given = dict(zip(inference.flags()[::2], inference.flags()[1::2], strict=True))
-    default = dict(
-        zip(DEFAULT_INFERENCE.flags()[::2], DEFAULT_INFERENCE.flags()[1::2], strict=True)
-    )
-    changed = [f"{flag} {value}" for flag, value in given.items() if default[flag] != value]
+    given, default = inference.flags(), DEFAULT_INFERENCE.flags()
+    changed = [
+        f"{flag} {value}"
+        for flag, value, usual in zip(given[::2], given[1::2], default[1::2], strict=True)
+        if value != usual
+    ]
     if changed:
         raise ConfigError(f"{' '.join(changed)}: only the 'lama' predictor runs networks")
     return {}

@@ -184,7 +184,8 @@ class Explorer:
         if prediction is None or len(prediction.answered) == len(wanted):
             return self.method
         self.stats.degraded_steps.append(t)
-        if prediction.has_variance if self.method.reads_members else 0 in prediction.answered:
+        enough = prediction.has_variance if self.method.reads_members else 0 in prediction.answered
+        if enough:
             return self.method
         self.stats.fallback_steps.append(t)
         return self.fallback

@@ -38,6 +38,7 @@ from mapex.prediction import make_predictor
 from mapex.prediction.base import EnsemblePrediction
 from mapex.prediction.classical import distance_to_known
 from mapex.prediction.config import (
+    DEFAULT_INFERENCE,
     InferenceConfig,
     PredictorEvaluationConfig,
     add_inference_arguments,
@@ -146,12 +147,11 @@ def evaluate(
     settings: PredictorEvaluationConfig,
     figure: Path | None,
     weights_dir: Path = WEIGHTS_DIR,
-    inference: InferenceConfig | None = None,
+    inference: InferenceConfig = DEFAULT_INFERENCE,
     reference_dir: Path | None = REFERENCE_WEIGHTS_DIR,
 ) -> list[SnapshotScore]:
     """Score every (map, start, time) snapshot of the ensemble in `weights_dir` (and the G of
     `reference_dir`, if given), run as `inference` says; optionally draw one of them."""
-    inference = inference or InferenceConfig()
     options = inference.ensemble_options()
     learned = make_predictor("lama", weights_dir=weights_dir, **options)
     reference = (

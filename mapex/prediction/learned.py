@@ -48,7 +48,6 @@ class LearnedEnsemble(Predictor):
         recent_answers: int = RECENT_ANSWERS,
     ) -> None:
         self.inference = InferenceConfig(precision, inference, views)  # ValueError if bad
-        self.precision = precision
         if threads is not None:
             torch.set_num_threads(threads)
         self.device = torch.device(device)
