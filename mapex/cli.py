@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from tqdm import tqdm
 
+from mapex.budget import add_budget_arguments, resolve_steps
 from mapex.config import (
     ConfigError,
     ExplorationConfig,
@@ -65,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
         "default: %(default)s",
     )
     add_inference_arguments(run)
-    run.add_argument("--steps", type=int, default=1000, help="time budget T; default: %(default)s")
+    add_budget_arguments(run)
     add_start_argument(run, 0, "start pose (default 0)")
     run.add_argument("--seed", type=int, default=0, help="random seed (UPEN's RRT); default: 0")
     run.add_argument(
@@ -130,11 +132,10 @@ def run_command(args: argparse.Namespace) -> int:
     from mapex.team.episode import run_team_episode
     from mapex.team.starts import team_start_cells
 
-    if args.steps < 1:
-        raise ConfigError(f"--steps must be at least 1 (got {args.steps})")
     team = check_team_flags(args.method, args.robots)
-    config = apply_overrides(ExplorationConfig(steps=args.steps), args.overrides)
+    config = apply_overrides(ExplorationConfig(until_iou=args.until_iou), args.overrides)
     world = load_world(args.world).check_size(config.world.max_cells)
+    config = replace(config, steps=resolve_steps(args.steps, world))
     start_cell(world, args.start, config.world.start_clearance_cells)  # a bad start: no work
     if team:
         team_start_cells(world, [args.start], args.robots, config)

@@ -82,6 +82,17 @@ class IgHectorConfig:
 
 
 @dataclass(frozen=True)
+class PipeConfig:
+    """pipe and pw_nbv (docs/algorithms.md#pipe): their `pathwise_index`."""
+
+    path_sample_cells: int = 3  # a viewpoint on every 3rd cell of the path
+
+    def __post_init__(self) -> None:
+        if self.path_sample_cells < 1:
+            raise ConfigError(f"pipe.path_sample_cells must be >= 1, got {self.path_sample_cells}")
+
+
+@dataclass(frozen=True)
 class PathGainConfig:
     """mapex_plus: gain along the path to a frontier, per unit path cost
     (docs/algorithms.md#beyond-the-paper). Chosen on generated worlds and the trainable KTH
@@ -139,6 +150,16 @@ class MetricsConfig:
     footprint_margin_cells: int = 3
     prediction_threshold: float = 0.5
     snapshot_steps: tuple[int, ...] = (200, 500, 1000)  # observed + G maps kept for the report
+    # the first step at which coverage and G's IoU reach each level is recorded (to the step)
+    reach_levels: tuple[float, ...] = (0.90, 0.95)
+
+    def __post_init__(self) -> None:
+        if self.sample_every_steps < 1:
+            raise ConfigError(
+                f"metrics.sample_every_steps must be >= 1, got {self.sample_every_steps}"
+            )
+        if not all(0.0 < level <= 1.0 for level in self.reach_levels):
+            raise ConfigError(f"metrics.reach_levels must be in (0, 1], got {self.reach_levels}")
 
 
 @dataclass(frozen=True)
@@ -193,6 +214,8 @@ class ExplorationConfig:
     """The whole configuration of one exploration episode."""
 
     steps: int = 1000
+    # end the run once G's IoU reaches this level (the authors' IoU-stop protocol); None: never
+    until_iou: float | None = None
     sensor: SensorConfig = field(default_factory=SensorConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
     frontier: FrontierConfig = field(default_factory=FrontierConfig)
@@ -200,10 +223,17 @@ class ExplorationConfig:
     visibility: VisibilityConfig = field(default_factory=VisibilityConfig)
     ig_hector: IgHectorConfig = field(default_factory=IgHectorConfig)
     path_gain: PathGainConfig = field(default_factory=PathGainConfig)
+    pipe: PipeConfig = field(default_factory=PipeConfig)
     upen: UpenConfig = field(default_factory=UpenConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
     team: TeamConfig = field(default_factory=TeamConfig)
+
+    def __post_init__(self) -> None:
+        if self.steps < 1:
+            raise ConfigError(f"steps must be at least 1, got {self.steps}")
+        if self.until_iou is not None and not 0.0 < self.until_iou <= 1.0:
+            raise ConfigError(f"until_iou must be in (0, 1], got {self.until_iou}")
 
 
 class ConfigError(ValueError):

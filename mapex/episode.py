@@ -35,6 +35,8 @@ class StepSource(Protocol):
     def step(self, robot: int, cells: np.ndarray) -> Scan: ...
 
 
+IOU_REACHED = "iou_reached"  # the run ended because G's IoU reached `config.until_iou`
+
 StepListener = Callable[[int, Explorer, MetricRecorder], None]
 """Called after each step t (1..T) with the explorer and recorder (progress bars, publishing)."""
 
@@ -53,7 +55,8 @@ class EpisodeResult:
     curves: MetricCurves
     trajectory: np.ndarray  # int (n + 1, 2): pose after the initial scan, then after each step
     finished_at: int | None  # step at which the robot gave up (early termination)
-    end_reason: str  # "budget" (T reached), "explored" (no frontier left) or "unreachable"
+    # "budget" (T reached), "explored" (no frontier left), "unreachable" or IOU_REACHED
+    end_reason: str
     stats: ExplorerStats
     final_observed: np.ndarray
     final_prediction: np.ndarray | None  # G's whole-map prediction at the end
@@ -101,14 +104,17 @@ def run_episode(
     explorer.observe(source.scan(robot))
     trajectory = [explorer.pose.copy()]
     finished_at = None
+    end_reason = "budget"
     for t in range(config.steps + 1):
-        if recorder.is_sample_step(t):
-            recorder.record(t, explorer.observed)
+        if recorder.at_step(t, explorer.observed, config.until_iou) and t < config.steps:
+            finished_at, end_reason = t, IOU_REACHED
+            recorder.hold_to_end(t, config.steps, explorer.observed)
+            break
         if t == config.steps:
             break
         motion = explorer.next_motion(t)
         if motion is None:
-            finished_at = t
+            finished_at, end_reason = t, explorer.end_reason
             recorder.hold_to_end(t, config.steps, explorer.observed)
             break
         explorer.observe(source.step(robot, motion))
@@ -127,7 +133,7 @@ def run_episode(
         curves=recorder.curves,
         trajectory=np.asarray(trajectory, dtype=np.int64),
         finished_at=finished_at,
-        end_reason="budget" if finished_at is None else explorer.end_reason,
+        end_reason=end_reason,
         stats=explorer.stats,
         final_observed=explorer.observed.copy(),
         final_prediction=recorder.last_prediction,

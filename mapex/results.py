@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapex.episode import EpisodeResult
+from mapex.episode import IOU_REACHED, EpisodeResult
 from mapex.grid import quantise_probability
 from mapex.plotting import plot_episode
 from mapex.team.episode import TeamResult
@@ -105,7 +105,11 @@ def describe_end(result: EpisodeResult) -> str:
     step 812` or `no frontier reachable at step 37`."""
     if result.finished_at is None:
         return f"ran all {result.steps} steps"
-    why = {"explored": "no frontier left", "unreachable": "no frontier reachable"}
+    why = {
+        "explored": "no frontier left",
+        "unreachable": "no frontier reachable",
+        IOU_REACHED: f"G's IoU reached {result.config.until_iou}",
+    }
     return f"{why[result.end_reason]} at step {result.finished_at}"
 
 
@@ -123,6 +127,7 @@ def summary(result: EpisodeResult) -> dict:
         "early_termination": result.finished_at is not None,
         "end_reason": result.end_reason,
         "auc": _json_floats(result.curves.auc()),
+        "reached": reached_record(result.curves.reached),
         "final": {
             "coverage": result.curves.coverage[-1],
             "iou": result.curves.iou[-1],
@@ -143,6 +148,20 @@ def summary(result: EpisodeResult) -> dict:
         "wall_time_s": round(result.wall_time_s, 3),
         "config": dataclasses.asdict(result.config),
     }
+
+
+def reached_record(reached: dict[str, dict[float, int | None]]) -> dict:
+    """{metric: {"0.9": step or None}}: the first step each level was reached (None: never
+    within the run, a censored run)."""
+    return {
+        metric: {level_key(level): step for level, step in levels.items()}
+        for metric, levels in reached.items()
+    }
+
+
+def level_key(level: float) -> str:
+    """A level as a metrics.json key: 0.9 -> "0.9", 0.95 -> "0.95"."""
+    return f"{level:g}"
 
 
 def _team_summary(result: EpisodeResult) -> dict:

@@ -40,6 +40,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from mapex.budget import Steps, add_budget_arguments, budget_overrides, resolve_steps
 from mapex.config import (
     ConfigError,
     ExplorationConfig,
@@ -90,6 +91,7 @@ class Episode:
     start: StartSpec
     seed: int
     robots: int = 1  # a team method's team size
+    steps: int = 1000  # the time budget T on this world (`--steps auto` differs per world)
 
     @property
     def name(self) -> str:
@@ -110,19 +112,30 @@ def plan_episodes(
     seeds: list[int],
     world_config: WorldConfig = DEFAULT_WORLD_CONFIG,
     robots: int = 1,
+    steps: Steps = 1000,
 ) -> list[Episode]:
     """Every combination, worlds outermost. `starts`: the corners for every map, or each
     map's own starts by map name (see `read_starts_file`). Loads each world once to name
     it and to check its size and every start on it (WorldError naming map and cell).
-    `robots`: the team size of the team methods (single-robot methods run alone)."""
+    `robots`: the team size of the team methods (single-robot methods run alone); `steps`:
+    the budget, or None for each world's `auto` budget."""
     episodes = []
     for spec in world_specs:
         world = load_world(spec).check_size(world_config.max_cells)
         mine = starts if isinstance(starts, list) else _starts_of(starts, world.name)
         for start in mine:
             start_cell(world, start, world_config.start_clearance_cells)
+        budget = resolve_steps(steps, world)
         episodes += [
-            Episode(spec, world.name, method, start, seed, robots if method in TEAM_METHODS else 1)
+            Episode(
+                spec,
+                world.name,
+                method,
+                start,
+                seed,
+                robots if method in TEAM_METHODS else 1,
+                budget,
+            )  # fmt: skip
             for method, start, seed in itertools.product(methods, mine, seeds)
         ]
     return episodes
@@ -161,6 +174,11 @@ def _is_cell(value) -> bool:
     )
 
 
+def plain_config(exploration: ExplorationConfig, episode: Episode) -> dict:
+    """The configuration `episode` runs with, as the plain data metrics.json records."""
+    return json.loads(json.dumps(asdict(replace(exploration, steps=episode.steps))))
+
+
 def finished(episode: Episode, out_dir: Path, config: dict | None = None) -> bool:
     """Whether the episode has a sound results folder. Folders appear whole, by rename, but
     a disk, an editor or another version can still damage one: a folder that fails
@@ -192,6 +210,8 @@ def run_problem(episode: Episode, folder: Path, config: dict | None = None) -> s
         return f"it holds {'/'.join(map(str, found))}, not {'/'.join(map(str, wanted))}"
     if len(record.steps) == 0:
         return "its curves are empty"
+    if "reached" not in record.metrics:
+        return "it has no time-to-level record (written by an older version)"
     team = record.metrics.get("team") or {}
     if episode.method in TEAM_METHODS and team.get("robots") != episode.robots:
         return f"it holds a team of {team.get('robots')}, not {episode.robots}"
@@ -248,11 +268,11 @@ def planner_spec(
     planner_args = [
         "--run", episode.run_id, "--world", episode.world_spec,
         "--start", start_argument(episode.start),
-        "--method", episode.method, "--seed", str(episode.seed), "--steps", str(args.steps),
+        "--method", episode.method, "--seed", str(episode.seed), "--steps", str(episode.steps),
         "--out", str(planner_folder(episode, out_dir)), "--no-progress",
         "--robots", str(episode.robots),
     ]  # fmt: skip
-    for override in args.overrides:
+    for override in [*budget_overrides(args), *args.overrides]:
         planner_args += ["--set", override]
     return ProcessSpec(f"episode-{episode.run_id}", "services.planner", (*planner_args, *flags))
 
@@ -268,9 +288,9 @@ def run_episodes(
 ) -> tuple[int, list[str]]:
     """Run `todo`, `args.jobs` at a time; (episodes finished, failure lines). `watch` kills
     stuck workers for the supervisor to restart."""
-    queue, running, done, failures = list(todo), {}, 0, []
+    queue, running, done, failures = list(todo), {}, [], []
     bar = tqdm(
-        total=len(todo) * args.steps,
+        total=sum(episode.steps for episode in todo),
         unit="step",
         file=sys.stderr,
         disable=args.no_progress,
@@ -292,19 +312,21 @@ def run_episodes(
                     continue
                 del running[name]
                 if code == 0 and publish(episode, args.out):
-                    done += 1
+                    done.append(episode)
                 else:
                     failures.append(f"{episode.name}: planner exited with {code}")
-            steps = done * args.steps + sum(progress.of(e.run_id) for e in running.values())
+            steps = sum(e.steps for e in done) + sum(
+                progress.of(e.run_id) for e in running.values()
+            )
             bar.update(min(steps, bar.total) - bar.n)
-            bar.set_postfix_str(f"{done} done, {len(failures)} failed", refresh=False)
+            bar.set_postfix_str(f"{len(done)} done, {len(failures)} failed", refresh=False)
             time.sleep(supervisor.services.supervision_poll_s)
-    return done, failures
+    return len(done), failures
 
 
 def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) -> int:
     began = time.monotonic()
-    exploration = apply_overrides(ExplorationConfig(), args.overrides)
+    exploration = apply_overrides(ExplorationConfig(until_iou=args.until_iou), args.overrides)
     methods = list(args.methods) + (list(ABLATIONS) if args.ablations else [])
     starts = args.starts if args.starts_file is None else read_starts_file(args.starts_file)
     for method in methods:
@@ -312,14 +334,13 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
     if args.robots > 1 and not any(method in TEAM_METHODS for method in methods):
         raise ConfigError(f"--robots {args.robots} needs a team method ({', '.join(TEAM_METHODS)})")
     episodes = plan_episodes(
-        args.maps, methods, starts, args.seeds, exploration.world, robots=args.robots
+        args.maps, methods, starts, args.seeds, exploration.world, args.robots, args.steps
     )
     check_output_folder(args.out)
     check_outside_tool_arguments(args)
     if remove_staging(args.out):
         log.info("removed half-written runs of an interrupted evaluation")
-    config = json.loads(json.dumps(asdict(replace(exploration, steps=args.steps))))
-    todo = [e for e in episodes if not finished(e, args.out, config)]
+    todo = [e for e in episodes if not finished(e, args.out, plain_config(exploration, e))]
     already = len(episodes) - len(todo)
     log.info("%d episodes: %d already finished, %d to run", len(episodes), already, len(todo))
     own_config, flags = hub_session_config(args, services)
@@ -424,7 +445,7 @@ def build_parser() -> argparse.ArgumentParser:
         help='explicit starts instead of corners: JSON {"<map name>": [[row, col], ...]}',
     )
     parser.add_argument("--seeds", type=_ints, default=[0], help="comma-separated (default: 0)")
-    parser.add_argument("--steps", type=int, default=1000, help="time budget T (default 1000)")
+    add_budget_arguments(parser)
     parser.add_argument("--jobs", type=int, default=2, help="episodes at once (default 2)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="default: %(default)s")
     add_override_argument(parser)
@@ -446,7 +467,7 @@ def _ints(text: str) -> list[int]:
 def run_cli(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    for flag in ("steps", "jobs", "replicas", "threads"):
+    for flag in ("jobs", "replicas", "threads"):
         if getattr(args, flag) < 1:
             parser.error(f"--{flag} must be at least 1")
     if any(start > 3 for start in args.starts):

@@ -32,6 +32,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from mapex.budget import add_budget_arguments, budget_overrides, resolve_steps
 from mapex.config import (
     ConfigError,
     ExplorationConfig,
@@ -148,7 +149,7 @@ def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str
             ]  # fmt: skip
             if args.out is not None:
                 planner_args += ["--out", str(args.out / f"{run.run_id}-{robot_id(robot)}")]
-            for override in args.overrides:
+            for override in [*budget_overrides(args), *args.overrides]:
                 planner_args += ["--set", override]
             planners.append(
                 ProcessSpec(
@@ -210,8 +211,9 @@ def supervise(
 def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) -> int:
     """Spawn, supervise and stop everything; the exit code of the run."""
     # A bad world, start or override fails here in one line, before any process starts.
-    exploration = apply_overrides(ExplorationConfig(), args.overrides)
+    exploration = apply_overrides(ExplorationConfig(until_iou=args.until_iou), args.overrides)
     world = load_world(args.world).check_size(exploration.world.max_cells)
+    args.steps = resolve_steps(args.steps, world)
     start_cell(world, args.start, exploration.world.start_clearance_cells)
     check_output_folder(args.out or DEFAULT_RESULTS_DIR)
     check_outside_tool_arguments(args)
@@ -278,7 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="a team method (mapex_team, ...) makes the --robots of a world one team sharing "
         "a map, deployed about 1 m apart around the start",
     )
-    parser.add_argument("--steps", type=int, default=1000, help="time budget T (default 1000)")
+    add_budget_arguments(parser)
     add_start_argument(parser, 0, "start pose of the first run (default 0)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first run (default 0)")
     parser.add_argument("--robots", type=int, default=1, help="robots per world (default 1)")
@@ -298,7 +300,7 @@ def build_parser() -> argparse.ArgumentParser:
 def run_cli(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    for flag in ("steps", "robots", "runs", "replicas", "threads"):
+    for flag in ("robots", "runs", "replicas", "threads"):
         if getattr(args, flag) < 1:
             parser.error(f"--{flag} must be at least 1")
     if not isinstance(args.start, int) and args.robots > 1 and args.method not in TEAM_METHODS:

@@ -1,5 +1,5 @@
-"""The exploration methods of docs/algorithms.md#methods (the paper's eight and two of our
-own), selectable by name."""
+"""The exploration methods of docs/algorithms.md#methods (the paper's eight, three of our
+own and the authors' follow-up PIPE with its baseline), selectable by name."""
 
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ from mapex.methods.information_gain import (
 )
 from mapex.methods.nearest import NearestFrontier
 from mapex.methods.path_gain import MapExPath, MapExPlus
+from mapex.methods.pathwise import MapExPlusObserved, PathwiseNbv, Pipe
 from mapex.methods.upen import Upen
 
 METHODS: dict[str, type[Method]] = {
@@ -32,11 +33,15 @@ METHODS: dict[str, type[Method]] = {
         Upen,
         MapExPath,
         MapExPlus,
+        MapExPlusObserved,
+        Pipe,
+        PathwiseNbv,
     )
 }
 MAIN_COMPARISON = ("nearest", "upen", "ig_hector", "mapex")
 ABLATIONS = ("deterministic", "no_variance", "observed_map", "no_visibility")
-BEYOND_PAPER = ("mapex_path", "mapex_plus")  # ours, not the paper's (docs/algorithms.md)
+BEYOND_PAPER = ("mapex_path", "mapex_plus", "mapex_plus_observed")  # ours (docs/algorithms.md)
+FOLLOW_UP = ("pipe", "pw_nbv")  # the authors' IROS 2025 follow-up (docs/algorithms.md#pipe)
 
 
 def parse_method_list(text: str, known: Collection[str] = METHODS) -> list[str]:
@@ -61,6 +66,7 @@ def make_method(name: str, config: ExplorationConfig) -> Method:
 __all__ = [
     "ABLATIONS",
     "BEYOND_PAPER",
+    "FOLLOW_UP",
     "MAIN_COMPARISON",
     "METHODS",
     "FrontierScorer",

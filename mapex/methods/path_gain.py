@@ -77,14 +77,21 @@ class MapExPlus(FrontierScorer):
         super().__init__(config)
         self.replan_every_steps = config.path_gain.replan_every_steps or None
 
+    def worth(self, context: PlanningContext) -> np.ndarray:
+        """float32 map: what each cell seen is worth (0 on known cells)."""
+        return revealed_cell_worth(context, context.config.path_gain.variance_weight)
+
+    def opacity(self, context: PlanningContext) -> tuple[np.ndarray, str, float]:
+        """The map the rays walk, with its stop rule and level: M_t, as MapEx."""
+        visibility = context.config.visibility
+        return context.prediction.mean, visibility.stop_rule, visibility.epsilon
+
     def score(self, context: PlanningContext) -> np.ndarray:
         visibility = context.config.visibility
         settings = context.config.path_gain
-        worth = revealed_cell_worth(context, settings.variance_weight)
-        opacity = context.prediction.mean
-        at_frontier = frontier_gain(
-            context, opacity, worth, visibility.stop_rule, visibility.epsilon
-        )
+        worth = self.worth(context)
+        opacity, stop_rule, epsilon = self.opacity(context)
+        at_frontier = frontier_gain(context, opacity, worth, stop_rule, epsilon)
         paths = frontier_paths(context)
         offset = settings.cost_offset_cells
         scores = per_path_cost(at_frontier, paths.cost, offset)
@@ -100,8 +107,8 @@ class MapExPlus(FrontierScorer):
             groups,
             visibility.n_rays,
             visibility.range_cells,
-            visibility.stop_rule,
-            visibility.epsilon,
+            stop_rule,
+            epsilon,
         )
         scores[candidates] = per_path_cost(along, paths.cost[candidates], offset)
         return scores

@@ -22,7 +22,7 @@ from typing import Protocol
 import numpy as np
 
 from mapex.config import ExplorationConfig
-from mapex.episode import EpisodeResult
+from mapex.episode import IOU_REACHED, EpisodeResult
 from mapex.explorer import Explorer, ExplorerStats
 from mapex.grid import Cell, new_observed_map
 from mapex.prediction.base import Predictor
@@ -211,10 +211,12 @@ def run_team_episode(
     team = Team(world.shape, method_name, predictor, robots, seed, config, local)
     recorder = MetricRecorder(world, cells[0], predictor, config.metrics)
     team.observe(source.initial())
-    finished_at = None
+    finished_at, end_reason = None, "budget"
     for t in range(config.steps + 1):
-        if recorder.is_sample_step(t):
-            recorder.record(t, team.observed)
+        if recorder.at_step(t, team.observed, config.until_iou) and t < config.steps:
+            finished_at, end_reason = t, IOU_REACHED
+            recorder.hold_to_end(t, config.steps, team.observed)
+            break
         if t == config.steps:
             break
         step = source.step(t, team.decide(t))
@@ -222,6 +224,7 @@ def run_team_episode(
         team.mark_lost(step.lost, t)
         if step.finished:
             finished_at = t
+            end_reason = next(iter(team.explorers.values())).end_reason or "explored"
             recorder.hold_to_end(t, config.steps, team.observed)
             break
         team.observe(step.scans)
@@ -229,7 +232,7 @@ def run_team_episode(
             on_step(t + 1, list(team.explorers.values()), recorder)
     recorder.flush()
     return _result(world, method_name, predictor, cells, starts, seed, config, team, recorder,
-                   finished_at, time.perf_counter() - began)  # fmt: skip
+                   finished_at, end_reason, time.perf_counter() - began)  # fmt: skip
 
 
 def _result(
@@ -243,6 +246,7 @@ def _result(
     team: Team,
     recorder: MetricRecorder,
     finished_at: int | None,
+    end_reason: str,
     wall_time_s: float,
 ) -> TeamResult:
     paths = [np.asarray(path, dtype=np.int64) for path in team.trajectories]
@@ -262,7 +266,7 @@ def _result(
         curves=recorder.curves,
         trajectory=paths[0],
         finished_at=finished_at,
-        end_reason="budget" if finished_at is None else (first.end_reason or "explored"),
+        end_reason=end_reason,
         stats=first.stats,
         final_observed=team.observed.copy(),
         final_prediction=recorder.last_prediction,
