@@ -1,5 +1,5 @@
 """The time budget T of a run: a number of steps, or `auto`, chosen from the building's size
-as the authors' IoU-stop protocol does (docs/protocol.md#budget)."""
+as the authors' IoU-stop protocol does (docs/algorithms.md#budget)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from mapex.worlds.base import World
 AUTO = "auto"
 # (valid floor area in m2 at least, steps), largest first: PIPE's large / medium / small
 # budgets (explore.py with log_iou); the size rule puts 12 of their 14 KTH test floors in
-# the class explore.py names (docs/protocol.md#budget)
+# the class explore.py names (docs/algorithms.md#budget)
 AUTO_BUDGETS: tuple[tuple[float, int], ...] = ((3_500.0, 6000), (400.0, 3000), (0.0, 1500))
 
 Steps = int | None
@@ -36,10 +36,14 @@ def floor_area_m2(world: World) -> float:
     return float(world.valid_space.sum()) * world.resolution_m**2
 
 
+def steps_for_area(area_m2: float) -> int:
+    """The `auto` budget of a building of `area_m2`: the steps of the first class it reaches."""
+    return next(steps for least, steps in AUTO_BUDGETS if area_m2 >= least)
+
+
 def auto_steps(world: World) -> int:
-    """The `auto` budget of `world`: the steps of the first size class its area reaches."""
-    area = floor_area_m2(world)
-    return next(steps for least, steps in AUTO_BUDGETS if area >= least)
+    """The `auto` budget of `world`, from its valid floor area."""
+    return steps_for_area(floor_area_m2(world))
 
 
 def resolve_steps(steps: Steps, world: World) -> int:
@@ -71,7 +75,7 @@ def add_budget_arguments(parser: argparse.ArgumentParser) -> None:
         default=1000,
         metavar="T|auto",
         help="time budget T in steps, or 'auto': 6000 / 3000 / 1500 by the building's floor "
-        "area (docs/protocol.md#budget); default: %(default)s",
+        "area (docs/algorithms.md#budget); default: %(default)s",
     )
     parser.add_argument(
         "--until-iou",

@@ -69,3 +69,13 @@ def test_no_docstring_cites_the_spec_outside_the_repository():
         if re.search(r"SPEC §|SPEC\.md", path.read_text())
     ]
     assert citing == []
+
+
+def test_every_method_is_in_the_readme_table_and_the_algorithms_page():
+    from mapex.methods import METHODS
+
+    readme = (ROOT / "README.md").read_text()
+    algorithms = (ROOT / "docs" / "algorithms.md").read_text()
+    for name in METHODS:
+        assert f"| `{name}` |" in readme, f"{name} is missing from the README's methods table"
+        assert f"`{name}`" in algorithms, f"{name} is missing from docs/algorithms.md"

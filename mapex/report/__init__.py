@@ -11,6 +11,9 @@ being written and are ignored) and produces, in `--out` (default RESULTS_DIR/rep
 * snapshots.png: observed map and G's prediction at the snapshot steps for one run per
   method, all on the same world and start (one row per method; one row per method and map
   kind for wide maps).
+* a time-to-level section (median first step at which coverage and IoU reached 90 / 95 %,
+  runs that never did) with reach.png (share of runs there by step t), and paired
+  differences between methods on the same episodes (mapex.report.reach).
 * for team runs, a Teams section (overlap, path length per robot, lost robots) and
   teams.png: each team method's merged map with every robot's trajectory (mapex.report.teams).
 
@@ -41,6 +44,16 @@ from mapex.report.figures import (
     plot_snapshots,
     snapshot_columns,
     world_file_name,
+)
+from mapex.report.reach import (
+    REACH_FIGURE,
+    PairRow,
+    paired_markdown,
+    paired_rows,
+    plot_reach,
+    reach_json,
+    reach_markdown,
+    reach_table,
 )
 from mapex.report.runs import (
     METRIC_LABELS,
@@ -172,13 +185,21 @@ def write_report(
     out_dir.mkdir(parents=True, exist_ok=True)
     markdown = out_dir / MARKDOWN_FILE
     teams = team_summary(team_runs(runs), order)
-    text = render_markdown(table, improvements, counts, REFERENCE_METHOD, notes)
+    reach = reach_table(runs, order)
+    pairs = paired_rows(runs, config.paired_comparisons, config.paired_level)
+    sections = reach_sections(reach, pairs)
+    text = render_markdown(table, improvements, counts, REFERENCE_METHOD, notes, sections)
     if teams:
         text += "\n" + team_markdown(teams) + "\n"
     with staged_file(markdown) as partial:
         partial.write_text(text)
     data = report_json(table, improvements, counts, REFERENCE_METHOD, notes)
+    data.update(reach_json(reach, pairs))
     figures = _write_curves(runs, table, out_dir, config)
+    if reach:
+        figures.append(out_dir / REACH_FIGURE)
+        with staged_file(figures[-1]) as partial:
+            plot_reach(partial, runs, order, config)
     snapshots = _write_snapshots(runs, out_dir, config, snapshot_pick, warn)
     if snapshots is not None:
         figures.append(out_dir / SNAPSHOTS_FIGURE)
@@ -193,7 +214,30 @@ def write_report(
     summary = auc_markdown(table.rows)
     if improvements:
         summary += "\n\n" + improvements_markdown(improvements, REFERENCE_METHOD)
+    if reach:
+        summary += "\n\n" + reach_markdown(reach)
     return ReportFiles(markdown, path_json, tuple(figures)), summary
+
+
+def reach_sections(reach: dict, pairs: Sequence[PairRow]) -> list[str]:
+    """The Markdown sections of the time to a level and of the paired differences."""
+    sections = []
+    if reach:
+        sections += [
+            "## Time to a level",
+            "Median first step at which the metric reached the level (in brackets: runs that "
+            "never did, counted as later than all; the median is `never` when they are half "
+            "or more). reach.png: the share of runs there by step t.",
+            reach_markdown(reach),
+        ]
+    if pairs:
+        sections += [
+            "## Paired differences",
+            "Per episode (same world, start and seed) first − second: mean ± standard error "
+            "of the AUC differences, and how often the first method reached the level sooner.",
+            paired_markdown(pairs),
+        ]
+    return sections
 
 
 def _write_curves(

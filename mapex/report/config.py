@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from mapex.methods import ABLATIONS, BEYOND_PAPER, MAIN_COMPARISON
+from mapex.methods import ABLATIONS, BEYOND_PAPER, FOLLOW_UP, MAIN_COMPARISON
 
 
 @dataclass(frozen=True)
@@ -20,9 +20,18 @@ class ReportConfig:
     snapshot_wide_panel_inches: float = 6.0  # width of one map panel in that wide layout
     snapshot_wide_row_gap_inches: float = 0.2  # space between the rows of that wide layout
     band_alpha: float = 0.2  # opacity of the standard-error bands
+    # paired differences (first - second on the same episodes) the report lists when both ran
+    paired_comparisons: tuple[tuple[str, str], ...] = (
+        ("pipe", "pw_nbv"),
+        ("mapex_plus", "pw_nbv"),
+        ("mapex_plus", "mapex_plus_observed"),
+        ("mapex_plus", "pipe"),
+        ("mapex", "observed_map"),
+    )
+    paired_level: tuple[str, float] = ("iou", 0.9)  # whose first step the pairs compare
 
     @property
     def method_order(self) -> tuple[str, ...]:
-        """Rows of every table and figure: the main comparison, the ablations, then the
-        methods beyond the paper."""
-        return MAIN_COMPARISON + ABLATIONS + BEYOND_PAPER
+        """Rows of every table and figure: the main comparison, the ablations, the methods
+        beyond the paper, then the authors' follow-up."""
+        return MAIN_COMPARISON + ABLATIONS + BEYOND_PAPER + FOLLOW_UP

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapex.results import CURVES_FILE, METRICS_FILE, SNAPSHOTS_FILE, folder_name
+from mapex.results import CURVES_FILE, METRICS_FILE, SNAPSHOTS_FILE, folder_name, level_key
 from mapex.worlds.starts import start_label
 
 METRICS = ("coverage", "iou", "tu")
@@ -95,6 +95,16 @@ class RunRecord:
         """The run's AUC of `metric` (NaN when the run has none, e.g. no TU sample)."""
         value = self.metrics["auc"].get(metric)
         return float("nan") if value is None else float(value)
+
+    def reach_levels(self) -> list[tuple[str, float]]:
+        """The (metric, level) pairs whose first step the run recorded (none: older runs)."""
+        reached = self.metrics.get("reached") or {}
+        return [(metric, float(level)) for metric, levels in reached.items() for level in levels]
+
+    def reached(self, metric: str, level: float) -> int | None:
+        """The first step at which `metric` reached `level` (None: never in this run)."""
+        step = (self.metrics.get("reached") or {}).get(metric, {}).get(level_key(level))
+        return None if step is None else int(step)
 
     def curve(self, metric: str) -> np.ndarray:
         return {"coverage": self.coverage, "iou": self.iou, "tu": self.tu}[metric]

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mapex.episode import IOU_REACHED
 from mapex.methods.information_gain import MapEx
 from mapex.report.config import ReportConfig
 from mapex.report.runs import METRIC_LABELS, METRICS, RunRecord
@@ -37,6 +38,7 @@ class MethodRow:
     early_terminations: int
     explored_ends: int  # early ends with no frontier left
     unreachable_ends: int  # early ends with frontiers left, none reachable
+    iou_ends: int  # ends by `--until-iou` (G's IoU reached the level)
     degraded_runs: int
     auc: dict[str, Stat]
 
@@ -83,6 +85,7 @@ def method_rows(runs: Sequence[RunRecord], order: Sequence[str]) -> tuple[Method
                 early_terminations=sum(r.early_termination for r in mine),
                 explored_ends=sum(r.end_reason == "explored" for r in mine),
                 unreachable_ends=sum(r.end_reason == "unreachable" for r in mine),
+                iou_ends=sum(r.end_reason == IOU_REACHED for r in mine),
                 degraded_runs=sum(r.degraded for r in mine),
                 auc={m: mean_se([r.auc(m) for r in mine]) for m in METRICS},
             )
@@ -160,15 +163,16 @@ def _fmt_stat(stat: Stat) -> str:
 
 
 def _fmt_early_ends(row: MethodRow) -> str:
-    """`3 (2 / 1)`; runs recorded before end reasons existed count in the total only."""
-    return f"{row.early_terminations} ({row.explored_ends} / {row.unreachable_ends})"
+    """`3 (2 / 1 / 0)`; runs recorded before end reasons existed count in the total only."""
+    reasons = (row.explored_ends, row.unreachable_ends, row.iou_ends)
+    return f"{row.early_terminations} ({' / '.join(map(str, reasons))})"
 
 
 def _fmt_percent(value: float) -> str:
     return f"{value:+.1f} %" if math.isfinite(value) else "–"
 
 
-def _markdown_table(header: Sequence[str], rows: Iterable[Sequence[object]]) -> str:
+def markdown_table(header: Sequence[str], rows: Iterable[Sequence[object]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
     return "\n".join(lines)
@@ -176,14 +180,14 @@ def _markdown_table(header: Sequence[str], rows: Iterable[Sequence[object]]) -> 
 
 def auc_markdown(rows: Sequence[MethodRow]) -> str:
     """The AUC table: mean ± standard error over runs, and the early ends by reason."""
-    header = ["method", "runs", "early end (explored / unreachable)", "degraded runs"]
+    header = ["method", "runs", "early end (explored / unreachable / IoU)", "degraded runs"]
     header += [f"{METRIC_LABELS[m]} AUC" for m in METRICS]
     body = [
         [r.method, r.runs, _fmt_early_ends(r), r.degraded_runs]
         + [_fmt_stat(r.auc[m]) for m in METRICS]
         for r in rows
     ]
-    return _markdown_table(header, body)
+    return markdown_table(header, body)
 
 
 def improvements_markdown(improvements: dict[str, dict[str, float]], reference: str) -> str:
@@ -193,14 +197,14 @@ def improvements_markdown(improvements: dict[str, dict[str, float]], reference: 
         [method, *(_fmt_percent(v[m]) for m in (*METRICS, "mean"))]
         for method, v in improvements.items()
     ]
-    return _markdown_table(header, body)
+    return markdown_table(header, body)
 
 
 def counts_markdown(counts: dict[str, dict[str, int]]) -> str:
     """Runs per world (rows) and method (columns)."""
     methods = list(next(iter(counts.values()), {}))
     body = [[w, *(c[m] for m in methods), sum(c.values())] for w, c in counts.items()]
-    return _markdown_table(["world", *methods, "total"], body)
+    return markdown_table(["world", *methods, "total"], body)
 
 
 def render_markdown(
@@ -209,8 +213,9 @@ def render_markdown(
     counts: dict[str, dict[str, int]],
     reference: str,
     notes: Sequence[str] = (),
+    sections: Sequence[str] = (),
 ) -> str:
-    """The whole report.md."""
+    """The whole report.md; `sections` (Markdown) follow the improvements."""
     n_runs = sum(r.runs for r in table.rows)
     parts = [
         "# Exploration results",
@@ -224,6 +229,7 @@ def render_markdown(
         improvements_markdown(improvements, reference)
         if improvements
         else f"No {reference} runs: no improvements to report.",
+        *sections,
         "## Runs per world",
         counts_markdown(counts),
         "## AUC per world",
@@ -245,6 +251,7 @@ def _rows_json(rows: Sequence[MethodRow]) -> dict:
             "early_ends_by_reason": {
                 "explored": r.explored_ends,
                 "unreachable": r.unreachable_ends,
+                "iou_reached": r.iou_ends,
             },
             "degraded_runs": r.degraded_runs,
             "auc": {

@@ -16,6 +16,7 @@ import pytest
 from service_processes import REPO_ROOT, free_loopback_port, until
 from up_processes import pid_alive
 
+from mapex.budget import auto_steps
 from mapex.config import ExplorationConfig
 from mapex.episode import run_episode
 from mapex.results import write_results
@@ -23,9 +24,11 @@ from mapex.worlds import load_world
 from services.evaluate import (
     BROKEN_DIR,
     Episode,
+    build_parser,
     finished,
     plan_episodes,
     planner_folder,
+    planner_spec,
     publish,
     read_starts_file,
     remove_staging,
@@ -62,10 +65,10 @@ def reproduced_part(record: dict, other: dict) -> tuple:
     """
     if record["degraded_steps"] or other["degraded_steps"]:
         return (record["steps"],)
-    auc = dict(record["auc"])
+    auc, reached = dict(record["auc"]), dict(record["reached"])
     if record["degraded_metric_samples"] or other["degraded_metric_samples"]:
-        auc = {"coverage": auc["coverage"]}
-    return auc, record["steps"], record["replans"]
+        auc, reached = {"coverage": auc["coverage"]}, {"coverage": reached["coverage"]}
+    return auc, reached, record["steps"], record["replans"]
 
 
 def comparable_tables(first: dict, second: dict) -> tuple[dict, dict]:
@@ -93,6 +96,27 @@ def test_episodes_cover_every_combination_with_run_folder_names():
     assert (
         Episode("x", "50037764_PLAN1", "mapex", 2, 0).run_id == "50037764_plan1-mapex-start2-seed0"
     )
+
+
+def test_auto_steps_are_resolved_per_world_and_until_iou_reaches_the_planner(tmp_path):
+    worlds = ["generated:0", "generated:3"]
+    episodes = plan_episodes(worlds, ["nearest"], [0], [0], steps=None)
+    assert [e.steps for e in episodes] == [auto_steps(load_world(w)) for w in worlds]
+    assert plan_episodes(worlds, ["nearest"], [0], [0], steps=70)[0].steps == 70
+    args = build_parser().parse_args([*SMALL, "--until-iou", "0.95", "--steps", "auto"])
+    spec = planner_spec(episodes[1], args, tmp_path, [])
+    assert spec.args[spec.args.index("--steps") + 1] == str(episodes[1].steps)
+    assert "until_iou=0.95" in spec.args
+
+
+def test_a_folder_without_the_time_to_level_record_is_run_again(tmp_path, sound_run, caplog):
+    shutil.copytree(sound_run, tmp_path / EPISODE.name)
+    metrics = json.loads((tmp_path / EPISODE.name / "metrics.json").read_text())
+    del metrics["reached"]
+    (tmp_path / EPISODE.name / "metrics.json").write_text(json.dumps(metrics))
+    with caplog.at_level("WARNING"):
+        assert not finished(EPISODE, tmp_path, plain(SHORT))
+    assert "no time-to-level record" in caplog.text
 
 
 def test_team_methods_run_as_teams_of_the_asked_size():
@@ -267,6 +291,9 @@ def _started_pids(log_path) -> list[str]:
         (["--maps", "/no/such/map"], "no such map directory"),
         (["--maps", "generated:0", "--methods", "nearest,bogus"], "unknown method"),
         (["--maps", "generated:0", "--jobs", "0"], "--jobs must be at least 1"),
+        (["--maps", "generated:0", "--steps", "-1"], "--steps must be at least 1"),
+        (["--maps", "generated:0", "--steps", "1e3"], "--steps must be a whole number"),
+        (["--maps", "generated:0", "--until-iou", "0"], "--until-iou must be in (0, 1]"),
         (["--maps", "generated:0", "--robots", "2"], "--robots 2 needs a team method"),
         (
             ["--maps", "generated:0", "--methods", "mapex_team", "--robots", "0"],

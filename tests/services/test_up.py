@@ -30,6 +30,7 @@ from service_processes import (
 )
 from up_processes import UpProcess, pid_alive, read_run
 
+from mapex.budget import auto_steps
 from mapex.config import ExplorationConfig
 from mapex.episode import run_episode
 from mapex.prediction.learned import LearnedEnsemble
@@ -319,10 +320,28 @@ def test_services_joined_only_through_a_router_run_an_episode(tmp_path):
     assert len(trajectory) == 61 and metrics["degraded_steps"] == []
 
 
+def test_an_auto_budget_run_ends_once_gs_iou_reaches_the_level(tmp_path):
+    up, _ = start_up(
+        tmp_path, "stop", "--method", "nearest", "--steps", "auto", "--until-iou", "0.3"
+    )
+    try:
+        assert up.wait() == 0, up.log()
+    finally:
+        up.kill()
+    metrics, _, _ = read_run(tmp_path / "runs" / "stop-0-r0")
+    assert metrics["steps"] == auto_steps(load_world(WORLD))
+    assert metrics["end_reason"] == "iou_reached" and metrics["finished_at"] < 1000
+    assert metrics["reached"]["iou"]["0.9"] is None  # censored: it stopped at 0.3
+    assert metrics["config"]["until_iou"] == 0.3
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
         (["--steps", "0"], "--steps must be at least 1"),
+        (["--steps", "lots"], "--steps must be a whole number or 'auto'"),
+        (["--until-iou", "2"], "--until-iou must be in (0, 1]"),
+        (["--until-iou", "x"], "--until-iou must be a number in (0, 1]"),
         (["--world", "/no/such/map"], "error"),
         (["--members", "g,g9"], "unknown member"),
         (["--run-prefix", "Bad Id"], "--run-prefix"),

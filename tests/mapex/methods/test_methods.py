@@ -10,6 +10,7 @@ from mapex.grid import FREE, OCCUPIED, UNKNOWN
 from mapex.methods import (
     ABLATIONS,
     BEYOND_PAPER,
+    FOLLOW_UP,
     MAIN_COMPARISON,
     METHODS,
     PlanningContext,
@@ -65,6 +66,9 @@ EXPECTED_SIDE = {
     "upen": "right",
     "mapex_path": "right",
     "mapex_plus": "right",
+    "mapex_plus_observed": "left",
+    "pipe": "right",
+    "pw_nbv": "left",
 }
 
 
@@ -72,7 +76,7 @@ def test_every_method_is_registered():
     assert (
         set(METHODS)
         == set(EXPECTED_SIDE)
-        == set(MAIN_COMPARISON) | set(ABLATIONS) | set(BEYOND_PAPER)
+        == set(MAIN_COMPARISON) | set(ABLATIONS) | set(BEYOND_PAPER) | set(FOLLOW_UP)
     )
 
 

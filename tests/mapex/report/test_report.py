@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
-from mapex.methods import ABLATIONS, BEYOND_PAPER, MAIN_COMPARISON
+from mapex.methods import ABLATIONS, BEYOND_PAPER, FOLLOW_UP, MAIN_COMPARISON
 from mapex.report import (
     auc_table,
     choose_snapshot_runs,
@@ -159,10 +159,10 @@ def test_staging_and_broken_folders(results, capsys):
 
 def test_method_order():
     order = ReportConfig().method_order
-    assert order == MAIN_COMPARISON + ABLATIONS + BEYOND_PAPER
+    assert order == MAIN_COMPARISON + ABLATIONS + BEYOND_PAPER + FOLLOW_UP
     assert order[:4] == ("nearest", "upen", "ig_hector", "mapex")
     assert order[4:8] == ("deterministic", "no_variance", "observed_map", "no_visibility")
-    assert order[8:] == ("mapex_path", "mapex_plus")
+    assert order[8:] == ("mapex_path", "mapex_plus", "mapex_plus_observed", "pipe", "pw_nbv")
     shuffled = ["zeta", "no_visibility", "mapex", "alpha", "deterministic", "nearest", "upen"]
     assert order_methods(shuffled, order) == [
         "nearest",
@@ -234,9 +234,13 @@ def test_write_report_files_and_numbers(results, tmp_path):
         "generated_1-nearest-start1"
     )  # upen has start 1 only
     markdown = files.markdown.read_text()
-    assert "| mapex | 3 | 0 (0 / 0) | 1 | 0.700 ± 0.058 |" in markdown
-    assert "| nearest | 3 | 2 (1 / 1) | 0 |" in markdown
-    assert data["methods"]["nearest"]["early_ends_by_reason"] == {"explored": 1, "unreachable": 1}
+    assert "| mapex | 3 | 0 (0 / 0 / 0) | 1 | 0.700 ± 0.058 |" in markdown
+    assert "| nearest | 3 | 2 (1 / 1 / 0) | 0 |" in markdown
+    assert data["methods"]["nearest"]["early_ends_by_reason"] == {
+        "explored": 1,
+        "unreachable": 1,
+        "iou_reached": 0,
+    }
     assert "| nearest | +40.0 % | +25.0 % | +25.0 % | +30.0 % |" in markdown
     assert "| generated:1 | 2 | 1 | 2 | 5 |" in markdown
     assert markdown.index("| nearest |") < markdown.index("| upen |") < markdown.index("| mapex")
