@@ -188,7 +188,14 @@ def write_report(
     reach = reach_table(runs, order)
     pairs = paired_rows(runs, config.paired_comparisons, config.paired_level)
     sections = reach_sections(reach, pairs)
-    text = render_markdown(table, improvements, counts, REFERENCE_METHOD, notes, sections)
+    per_world = {
+        world: reach_markdown(mine)
+        for world in table.by_world
+        if (mine := reach_table([r for r in runs if r.world == world], order))
+    }
+    text = render_markdown(
+        table, improvements, counts, REFERENCE_METHOD, notes, sections, per_world
+    )
     if teams:
         text += "\n" + team_markdown(teams) + "\n"
     with staged_file(markdown) as partial:

@@ -214,8 +214,10 @@ def render_markdown(
     reference: str,
     notes: Sequence[str] = (),
     sections: Sequence[str] = (),
+    world_sections: dict[str, str] | None = None,
 ) -> str:
-    """The whole report.md; `sections` (Markdown) follow the improvements."""
+    """The whole report.md; `sections` (Markdown) follow the improvements,
+    `world_sections[world]` that world's AUC table."""
     n_runs = sum(r.runs for r in table.rows)
     parts = [
         "# Exploration results",
@@ -236,6 +238,8 @@ def render_markdown(
     ]
     for world, rows in table.by_world.items():
         parts += [f"### {world}", auc_markdown(rows)]
+        if world_sections and world in world_sections:
+            parts.append(world_sections[world])
     return "\n\n".join(parts) + "\n"
 
 
