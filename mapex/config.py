@@ -106,6 +106,9 @@ class PathGainConfig:
     # score = gain / (path cost + offset): an offset > 0 stops a tiny gain next to the robot
     # from outranking a large one a little further away (0 = plain gain per cell of path)
     cost_offset_cells: float = 20.0  # 2 m
+    # the path cost divided by: "planner" (its wall-penalised cost) or "cells" (its length
+    # in cells, as PIPE)
+    cost_measure: Literal["planner", "cells"] = "planner"
     # re-plan every this many steps even while the goal still has unknown cells (0 = only
     # when the goal is reached or spent, as mapex): what the drive reveals can redirect it
     replan_every_steps: int = 20

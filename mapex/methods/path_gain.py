@@ -23,7 +23,7 @@ from mapex.config import ExplorationConfig
 from mapex.grid import UNKNOWN
 from mapex.methods.base import FrontierScorer, PlanningContext
 from mapex.methods.information_gain import frontier_gain, mapex_gain
-from mapex.methods.paths import frontier_paths
+from mapex.methods.paths import FrontierPaths, frontier_paths
 from mapex.visibility import group_visibility_gain
 
 
@@ -94,7 +94,8 @@ class MapExPlus(FrontierScorer):
         at_frontier = frontier_gain(context, opacity, worth, stop_rule, epsilon)
         paths = frontier_paths(context)
         offset = settings.cost_offset_cells
-        scores = per_path_cost(at_frontier, paths.cost, offset)
+        cost = paths.cost if settings.cost_measure == "planner" else path_cells(paths)
+        scores = per_path_cost(at_frontier, cost, offset)
         ranked = [i for i in np.argsort(-scores, kind="stable") if np.isfinite(scores[i])]
         candidates = np.array(ranked[: settings.top_k], dtype=np.int64)
         groups = [
@@ -110,5 +111,16 @@ class MapExPlus(FrontierScorer):
             stop_rule,
             epsilon,
         )
-        scores[candidates] = per_path_cost(along, paths.cost[candidates], offset)
+        scores[candidates] = per_path_cost(along, cost[candidates], offset)
         return scores
+
+
+def path_cells(paths: FrontierPaths) -> np.ndarray:
+    """float64 (K,): the number of moves of each frontier's path (inf where unreachable)."""
+    return np.array(
+        [
+            np.inf if not np.isfinite(c) else len(paths.path(i)) - 1
+            for i, c in enumerate(paths.cost)
+        ],
+        dtype=np.float64,
+    )

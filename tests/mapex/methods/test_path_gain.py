@@ -9,7 +9,12 @@ import pytest
 from mapex.config import ConfigError, ExplorationConfig, apply_overrides
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
 from mapex.methods import PlanningContext, make_method
-from mapex.methods.path_gain import path_viewpoints, per_path_cost, revealed_cell_worth
+from mapex.methods.path_gain import (
+    path_cells,
+    path_viewpoints,
+    per_path_cost,
+    revealed_cell_worth,
+)
 from mapex.methods.paths import frontier_paths
 from mapex.navigation import cost_map, reachable_mask
 from mapex.prediction.base import EnsemblePrediction
@@ -192,3 +197,20 @@ def test_cost_offset_lets_a_large_gain_further_away_win():
 def test_mapex_plus_replans_periodically_only_when_asked(every, expected):
     method = make_method("mapex_plus", short_sight_config(replan_every_steps=every))
     assert method.replan_every_steps == expected
+
+
+def test_the_cells_measure_counts_moves_and_ignores_the_wall_penalty():
+    observed, robot, frontiers = walled_room(wall_to_the_left=True)
+    context = context_for(observed, robot, frontiers, short_sight_config())
+    paths = frontier_paths(context)
+    cells = path_cells(paths)
+    for i in range(len(frontiers)):
+        assert cells[i] == len(paths.path(i)) - 1
+        assert cells[i] <= paths.cost[i]  # the planner charges walls' neighbourhoods more
+    planner = make_method("mapex_plus", short_sight_config()).score(context)
+    config = short_sight_config(cost_measure="cells")
+    by_cells = make_method("mapex_plus", config).score(dataclasses.replace(context, config=config))
+    assert by_cells[1] == planner[1]  # a straight path in the open: the same cost
+    assert by_cells[0] > planner[0]  # around the wall: 39 moves, cost 54.5
+    with pytest.raises(ConfigError, match="choose one of"):
+        apply_overrides(ExplorationConfig(), ["path_gain.cost_measure=metres"])
