@@ -124,9 +124,9 @@ class MetricRecorder:
         self.reach.complete(t)
 
     def _note_iou_levels(self, t: int, iou: float) -> None:
-        """Levels first reached by the sample at `t`: find the first step they were reached
-        since the previous sample, by measuring every step in between (docs/algorithms.md#
-        time-to-level)."""
+        """Levels first reached by the sample at `t`: the first step since the previous
+        sample at which they were reached, measuring every step in between
+        (docs/algorithms.md#time-to-level)."""
         levels = self.curves.reached["iou"]
         new = sorted(level for level, step in levels.items() if step is None and iou >= level)
         for level in new:
