@@ -80,10 +80,10 @@ def reach_table(
     levels = levels_of(runs)
     table = {}
     for method in order_methods((r.method for r in runs if r.reach_levels()), order):
-        mine = [r for r in runs if r.method == method and r.reach_levels()]
+        mine = [r for r in runs if r.method == method]
         table[method] = {}
         for metric, level in levels:
-            steps = [r.reached(metric, level) for r in mine]
+            steps = [r.reached(metric, level) for r in mine if (metric, level) in r.reach_levels()]
             never = sum(step is None for step in steps)
             table[method][(metric, level)] = ReachStat(
                 censored_median(steps), len(steps) - never, never
@@ -92,7 +92,9 @@ def reach_table(
 
 
 def share_reached(runs: Sequence[RunRecord], level: Level, horizon: int) -> np.ndarray:
-    """float (horizon + 1,): the share of `runs` that had reached `level` by each step."""
+    """float (horizon + 1,): the share of `runs` that had reached `level` by each step
+    (among the runs that recorded it)."""
+    runs = [run for run in runs if level in run.reach_levels()]
     counts = np.zeros(horizon + 2)
     for run in runs:
         step = run.reached(*level)
@@ -116,7 +118,10 @@ def paired_rows(
         if not matched:
             continue
         diffs = {m: mean_se([a.auc(m) - b.auc(m) for a, b in matched]) for m in METRICS}
-        ahead = [_order(a.reached(*level), b.reached(*level)) for a, b in matched]
+        both = [
+            (a, b) for a, b in matched if level in a.reach_levels() and level in b.reach_levels()
+        ]
+        ahead = [_order(a.reached(*level), b.reached(*level)) for a, b in both]
         rows.append(
             PairRow(
                 first,
@@ -158,9 +163,8 @@ def reach_markdown(table: dict[str, dict[Level, ReachStat]]) -> str:
     header = ["method", "runs", *(level_label(level) for level in levels)]
     body = []
     for method, stats in table.items():
-        first = next(iter(stats.values()))
-        cells = [_fmt_reach(stats[level]) for level in levels]
-        body.append([method, first.reached + first.never, *cells])
+        runs = max(stat.reached + stat.never for stat in stats.values())
+        body.append([method, runs, *(_fmt_reach(stats[level]) for level in levels)])
     return markdown_table(header, body)
 
 

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from mapex.report import write_report
-from mapex.report.reach import censored_median, paired_rows, reach_table, share_reached
+from mapex.report.reach import (
+    ReachStat,
+    censored_median,
+    paired_rows,
+    reach_table,
+    share_reached,
+)
 from mapex.report.runs import RunRecord
 
 
@@ -83,3 +89,13 @@ def test_report_writes_the_section_and_figure_and_skips_old_records(tmp_path):
     assert "## Time to a level" in text and "| mapex | 2 | 100 (0) | never (1) |" in text
     assert "| nearest |" not in text.split("## Time to a level")[1].split("##")[0]
     assert (tmp_path / "reach.png") in files.figures
+
+
+def test_a_level_a_run_did_not_record_is_not_counted_as_never():
+    custom = record("a", 1, None)
+    custom.metrics["reached"] = {"iou": {"0.5": 300}}  # run with other reach levels
+    runs = [record("a", 0, 400), custom]
+    table = reach_table(runs, ["a"])
+    assert table["a"][("iou", 0.9)] == ReachStat(400, 1, 0)
+    assert table["a"][("iou", 0.5)] == ReachStat(300, 1, 0)
+    np.testing.assert_allclose(share_reached(runs, ("iou", 0.9), horizon=500)[-1], 1.0)
