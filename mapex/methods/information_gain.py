@@ -11,7 +11,7 @@ import numpy as np
 
 from mapex.grid import OCCUPIED
 from mapex.methods.base import FrontierScorer, PlanningContext
-from mapex.visibility import visibility_gain
+from mapex.visibility import group_visibility_gain, visibility_gain
 
 
 def frontier_gain(
@@ -27,6 +27,33 @@ def frontier_gain(
         opacity.astype(np.float32, copy=False),
         weights,
         context.frontiers,
+        cfg.n_rays,
+        cfg.range_cells,
+        stop_rule,
+        epsilon,
+    )
+
+
+def known_walls(context: PlanningContext) -> np.ndarray:
+    """float32 opacity with only the observed walls opaque (unknown cells let rays through)."""
+    return (context.observed == OCCUPIED).astype(np.float32)
+
+
+def path_group_gain(
+    context: PlanningContext,
+    opacity: np.ndarray,
+    weights: np.ndarray,
+    groups: list[np.ndarray],
+    stop_rule: str,
+    epsilon: float,
+) -> np.ndarray:
+    """Sum of `weights` over the union of the visible sets of each group of viewpoints (the
+    samples of a path), rays stopped by `opacity`."""
+    cfg = context.config.visibility
+    return group_visibility_gain(
+        opacity.astype(np.float32, copy=False),
+        weights,
+        groups,
         cfg.n_rays,
         cfg.range_cells,
         stop_rule,
@@ -90,9 +117,8 @@ class ObservedMap(FrontierScorer):
     name = "observed_map"
 
     def score(self, context: PlanningContext) -> np.ndarray:
-        known_walls = (context.observed == OCCUPIED).astype(np.float32)
         weights = context.unknown_weights(1.0)
-        gain = frontier_gain(context, known_walls, weights, "threshold", 1.0)
+        gain = frontier_gain(context, known_walls(context), weights, "threshold", 1.0)
         return gain / context.frontier_distances()
 
 

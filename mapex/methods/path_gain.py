@@ -22,9 +22,8 @@ import numpy as np
 from mapex.config import ExplorationConfig
 from mapex.grid import UNKNOWN
 from mapex.methods.base import FrontierScorer, PlanningContext
-from mapex.methods.information_gain import frontier_gain, mapex_gain
+from mapex.methods.information_gain import frontier_gain, mapex_gain, path_group_gain
 from mapex.methods.paths import FrontierPaths, frontier_paths
-from mapex.visibility import group_visibility_gain
 
 
 def per_path_cost(gain: np.ndarray, path_cost: np.ndarray, offset_cells: float = 0.0) -> np.ndarray:
@@ -87,7 +86,6 @@ class MapExPlus(FrontierScorer):
         return context.prediction.mean, visibility.stop_rule, visibility.epsilon
 
     def score(self, context: PlanningContext) -> np.ndarray:
-        visibility = context.config.visibility
         settings = context.config.path_gain
         worth = self.worth(context)
         opacity, stop_rule, epsilon = self.opacity(context)
@@ -102,15 +100,7 @@ class MapExPlus(FrontierScorer):
             path_viewpoints(paths.path(i), context.frontiers[i], settings.path_sample_cells)
             for i in candidates
         ]
-        along = group_visibility_gain(
-            opacity,
-            worth,
-            groups,
-            visibility.n_rays,
-            visibility.range_cells,
-            stop_rule,
-            epsilon,
-        )
+        along = path_group_gain(context, opacity, worth, groups, stop_rule, epsilon)
         scores[candidates] = per_path_cost(along, cost[candidates], offset)
         return scores
 

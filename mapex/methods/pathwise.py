@@ -14,11 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from mapex.grid import OCCUPIED
 from mapex.methods.base import FrontierScorer, PlanningContext
+from mapex.methods.information_gain import known_walls, path_group_gain
 from mapex.methods.path_gain import MapExPlus
 from mapex.methods.paths import frontier_paths
-from mapex.visibility import group_visibility_gain
 
 
 def pipe_samples(path: np.ndarray, every_cells: int) -> np.ndarray:
@@ -34,28 +33,14 @@ def pathwise_scores(
 ) -> np.ndarray:
     """float64 (K,): the worth of the union of the cells visible from each frontier's path
     samples / the number of samples; -inf for frontiers no path reaches."""
-    visibility = context.config.visibility
     paths = frontier_paths(context)
     scores = np.full(len(context.frontiers), -np.inf)
     reachable = np.flatnonzero(np.isfinite(paths.cost))
     every = context.config.pipe.path_sample_cells
     groups = [pipe_samples(paths.path(int(i)), every) for i in reachable]
-    gains = group_visibility_gain(
-        opacity.astype(np.float32, copy=False),
-        worth,
-        groups,
-        visibility.n_rays,
-        visibility.range_cells,
-        stop_rule,
-        epsilon,
-    )
+    gains = path_group_gain(context, opacity, worth, groups, stop_rule, epsilon)
     scores[reachable] = gains / np.array([max(len(group), 1) for group in groups], dtype=float)
     return scores
-
-
-def known_walls(context: PlanningContext) -> np.ndarray:
-    """float32 opacity with only the observed walls opaque (unknown cells let rays through)."""
-    return (context.observed == OCCUPIED).astype(np.float32)
 
 
 class Pipe(FrontierScorer):

@@ -22,11 +22,11 @@ from dataclasses import replace
 import numpy as np
 
 from mapex.config import ConfigError, ExplorationConfig
-from mapex.grid import OCCUPIED, UNKNOWN, Cell
+from mapex.grid import UNKNOWN, Cell
 from mapex.methods import METHODS
 from mapex.methods.base import FrontierScorer, PlanningContext
 from mapex.methods.goals import Goal
-from mapex.methods.information_gain import MapEx
+from mapex.methods.information_gain import MapEx, known_walls
 from mapex.methods.nearest import NearestFrontier
 from mapex.methods.path_gain import MapExPlus
 from mapex.navigation import plan_path
@@ -119,7 +119,7 @@ class TeamScorer(FrontierScorer):
         if context.prediction is not None:
             opacity, rule, epsilon = context.prediction.mean, cfg.stop_rule, cfg.epsilon
         else:
-            opacity = (context.observed == OCCUPIED).astype(np.float32)
+            opacity = known_walls(context)
             rule, epsilon = "threshold", 0.5
         seen = np.zeros(context.observed.shape, dtype=bool)
         for point in points:
