@@ -2,15 +2,10 @@
 
     python -m deploy.router [--listen ENDPOINT ...] [--connect ENDPOINT ...] [--config FILE]
 
-Opens one Zenoh session in router mode (multicast scouting off unless a `--config` file
-turns it on) and keeps it open until SIGINT/SIGTERM; workers and planners on other
-machines run with `--mode client --connect tcp/<this-host>:7447` and reach each other
-through it. It logs its zid, its endpoints and every node that joins or leaves. The
-default listener is the loopback hub endpoint (tcp/127.0.0.1:7447): serving other machines
-needs an explicit `--listen tcp/0.0.0.0:7447`. A router connects to nothing unless
-`--connect` names other routers. With `--config FILE` the file is the base and the flags
-given override it (the mode is always router). Bad endpoints or config: one line, exit 2.
-See deploy/README.md.
+Opens one Zenoh session in router mode and keeps it open until SIGINT/SIGTERM; workers and
+planners on other machines run with `--mode client --connect tcp/<this-host>:7447` and reach
+each other through it. It listens on loopback only unless `--listen` says otherwise. Its
+flags, logs and exits: deploy/README.md, section 2 (Machine A: the router).
 """
 
 from __future__ import annotations

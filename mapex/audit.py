@@ -1,16 +1,14 @@
 """`python -m mapex.audit`: does exploration ever give up while there is room left to explore?
 
-For every map given and `--starts` start cells spread over the map's eligible start cells
-(seeded farthest-point sampling), every method given runs `--steps` steps. Each run is
-reported with its end reason (`budget`, `explored`, `unreachable`), final coverage and the
-share of the *reachable* valid cells still unknown at its end: the valid free cells that the
-robot could drive to from its start with full knowledge of the map (the ground truth's walls
-inflated as the planner inflates known walls). A run that ended early while more than
-`--max-unknown` of them were unknown is flagged, and the command exits 1 when any run is.
-A benchmark-style check: it prints figures and does not run as part of the test suite.
+Every method given runs `--steps` steps from `--starts` start cells spread over each map. A
+run that ended early while more than `--max-unknown` of the valid cells the robot could
+reach were still unknown is flagged, and the command exits 1 when any run is. A
+benchmark-style check: it prints figures and does not run as part of the test suite.
 
     python -m mapex.audit --maps ../shared/data/kth_dev/50015847 generated:0 \\
         [--starts 25] [--methods nearest,observed_map] [--steps 1000] [--jobs 2]
+
+What is measured: docs/benchmarks.md#the-stall-audit-python--m-mapexaudit.
 """
 
 from __future__ import annotations
@@ -40,7 +38,7 @@ from mapex.grid import FREE, OCCUPIED, UNKNOWN, Cell
 from mapex.methods import METHODS, parse_method_list
 from mapex.navigation import cost_map, reachable_mask
 from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
-from mapex.worlds import World, WorldError, load_world
+from mapex.worlds import World, WorldError, load_world, world_spec_help
 from mapex.worlds.starts import eligible_start_cells
 
 DEFAULT_METHODS = ("nearest", "observed_map")
@@ -175,7 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     parser.add_argument("--maps", nargs="+", required=True, metavar="MAP",
-                        help="KTH map directories and/or generated:SEED worlds")  # fmt: skip
+                        help=f"the worlds, each {world_spec_help()}")  # fmt: skip
     parser.add_argument("--starts", type=int, default=25, help="start cells per map")
     parser.add_argument("--methods", type=argparse_type(parse_method_list),
                         default=list(DEFAULT_METHODS), help="comma-separated")  # fmt: skip

@@ -36,7 +36,7 @@ from mapex.prediction import DEFAULT_PREDICTOR, make_predictor
 from mapex.prediction.base import EnsemblePrediction
 from mapex.sensor import cast_scan, integrate_scan, scan_and_integrate
 from mapex.simulator import Simulator
-from mapex.worlds import WorldError, load_world, start_poses
+from mapex.worlds import WorldError, load_world, start_poses, world_spec_help
 
 DEFAULT_MAP = Path(__file__).resolve().parents[2] / "shared" / "data" / "kth_dev" / "50015847"
 TARGETS_MS = {
@@ -334,7 +334,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--world",
         default=str(DEFAULT_MAP),
-        help="KTH map dir, generated:SEED or generated-open:SEED",
+        help=f"the world: {world_spec_help()}; default: %(default)s",
     )
     parser.add_argument("--repeats", type=int, default=50, help="repeats of the small benchmarks")
     parser.add_argument("--episodes", type=int, default=3, help="repeats of the episode benchmark")

@@ -85,8 +85,3 @@ def add_budget_arguments(parser: argparse.ArgumentParser) -> None:
         help="end a run once G's IoU reaches LEVEL, e.g. 0.95 (checked at every metric "
         "sample; the authors' IoU-stop protocol); default: run to T",
     )
-
-
-def budget_overrides(args: argparse.Namespace) -> list[str]:
-    """The `--set` overrides that pass `--until-iou` on to a spawned planner."""
-    return [] if args.until_iou is None else [f"until_iou={args.until_iou}"]

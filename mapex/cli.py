@@ -17,12 +17,12 @@ from mapex.config import (
     apply_overrides,
 )
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
+from mapex.methods import METHODS
 from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
 from mapex.prediction.config import DEFAULT_INFERENCE, add_inference_arguments, inference_from_args
 from mapex.prediction.weights import WeightsError
-from mapex.team.methods import ALL_METHODS, check_team_flags
-from mapex.worlds import DEFAULT_WORLD, WorldError, load_world, start_label
-from mapex.worlds.starts import add_start_argument, start_cell
+from mapex.worlds import DEFAULT_WORLD, WorldError, load_world, start_label, world_spec_help
+from mapex.worlds.starts import add_start_argument
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -40,16 +40,15 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--world",
         default=DEFAULT_WORLD,
-        help="a KTH map directory (occ_map.npy + valid_space.npy), 'generated:SEED', "
-        "'generated-open:SEED' (free space outside) or "
-        f"'default' (= {DEFAULT_WORLD}); default: %(default)s",
+        help=f"the world: {world_spec_help()}; default: %(default)s",
     )
     run.add_argument(
         "--method",
         default="mapex",
-        choices=ALL_METHODS,
-        help="default: %(default)s; with --robots > 1 a team method (mapex_team, "
-        "mapex_plus_team, nearest_team, mapex_independent)",
+        choices=list(METHODS),
+        help="default: %(default)s; in a team (--robots > 1) the methods that coordinate ("
+        + ", ".join(n for n, m in METHODS.items() if m.coordinates)
+        + ") share goals, the others run independently on the shared map",
     )
     run.add_argument(
         "--robots",
@@ -129,16 +128,13 @@ def run_command(args: argparse.Namespace) -> int:
         destination,
         write_results,
     )
-    from mapex.team.episode import run_team_episode
-    from mapex.team.starts import team_start_cells
+    from mapex.team.starts import check_team_size, team_start_cells
 
-    team = check_team_flags(args.method, args.robots)
+    check_team_size(args.robots)
     config = apply_overrides(ExplorationConfig(until_iou=args.until_iou), args.overrides)
     world = load_world(args.world).check_size(config.world.max_cells)
     config = replace(config, steps=resolve_steps(args.steps, world))
-    start_cell(world, args.start, config.world.start_clearance_cells)  # a bad start: no work
-    if team:
-        team_start_cells(world, [args.start], args.robots, config)
+    team_start_cells(world, [args.start], args.robots, config)  # a bad start: no work
     check_destination(args.out)
     recording = _open_recording(args.record, world, args.method)
     predictor = make_predictor(args.predictor, **predictor_options(args))
@@ -153,19 +149,13 @@ def run_command(args: argparse.Namespace) -> int:
         def progress(t: int, explorers, _recorder) -> None:
             bar.update(t - bar.n)
             if recording is not None:
-                recording.step(t, explorers if team else [explorers])
+                recording.step(t, explorers)
 
         try:
-            if team:
-                result = run_team_episode(
-                    world, args.method, predictor, args.robots, [args.start], args.seed, config,
-                    on_step=progress,
-                )  # fmt: skip
-            else:
-                result = run_episode(
-                    world, args.method, predictor, args.start, args.seed, config,
-                    on_step=progress,
-                )  # fmt: skip
+            result = run_episode(
+                world, args.method, predictor, args.start, args.seed, config,
+                on_step=progress, robots=args.robots,
+            )  # fmt: skip
         finally:
             if recording is not None:
                 print(f"recorded {recording.close()} messages -> {args.record}", file=sys.stderr)
@@ -176,7 +166,7 @@ def run_command(args: argparse.Namespace) -> int:
         print(f"mapex: error: {error}", file=sys.stderr)
         return EXIT_FAILED
     auc = result.curves.auc()
-    if team:
+    if result.is_team:
         lengths = ", ".join(f"{length:.1f}" for length in result.path_lengths_m)
         print(f"team of {result.robots}: overlap {result.overlap:.3f}, paths {lengths} m")
     print(

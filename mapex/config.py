@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 from typing import Any, Literal, TypeVar
 
 StopRule = Literal["accumulate", "threshold"]
+MAX_RAYS = 100_000  # a scan's rays (the wire carries one uint16 length per ray)
+MAX_RANGE_CELLS = 65_535  # the longest ray a uint16 length holds
 T = TypeVar("T")
 
 
@@ -29,12 +31,24 @@ class SensorConfig:
     n_rays: int = 2500
     range_cells: int = 200  # 20 m
 
+    def __post_init__(self) -> None:
+        if not 1 <= self.n_rays <= MAX_RAYS:
+            raise ConfigError(f"sensor.n_rays must be in 1..{MAX_RAYS}, got {self.n_rays}")
+        if not 1 <= self.range_cells <= MAX_RANGE_CELLS:
+            raise ConfigError(
+                f"sensor.range_cells must be in 1..{MAX_RANGE_CELLS}, got {self.range_cells}"
+            )
+
 
 @dataclass(frozen=True)
 class MotionConfig:
     """Robot motion per timestep (docs/algorithms.md#sensor)."""
 
     cells_per_step: int = 3
+
+    def __post_init__(self) -> None:
+        if self.cells_per_step < 1:
+            raise ConfigError(f"motion.cells_per_step must be >= 1, got {self.cells_per_step}")
 
 
 @dataclass(frozen=True)

@@ -1,16 +1,12 @@
 """The robot brain: mapping, goal keeping and re-planning with one method
 (docs/algorithms.md#navigation).
 
-The explorer owns the observed map O_t. Each timestep it keeps its goal while
-the goal is still worth going to (docs/algorithms.md#goals), otherwise it re-plans: predicts the
-map (methods that use prediction), extracts frontiers, lets the method pick a
-goal and plans an A* path to it. It then hands back the cells to drive through
-this step. It knows nothing of processes: `services.planner` wraps it.
-
-A distributed ensemble may answer with fewer members than asked (docs/design.md#reliability).
-Such a re-plan is *degraded* and listed in the stats; with fewer than two members there is no
-variance, so the frontiers are scored on the observed map (the `observed_map` method) for that
-re-plan."""
+The explorer owns the observed map O_t. Each timestep it keeps its goal while the goal is
+still worth going to (docs/algorithms.md#goals), otherwise it re-plans: predicts the map
+(methods that use prediction), extracts frontiers, lets the method pick a goal and plans an
+A* path to it. It then hands back the cells to drive through this step. It knows nothing of
+processes: `services.planner` wraps it. A re-plan with fewer members than asked is
+*degraded* and listed in the stats (docs/design.md#in-process-equals-distributed)."""
 
 from __future__ import annotations
 
@@ -46,8 +42,8 @@ class ExplorerStats:
     approach_goals: int = 0  # goals standing in for an unreachable frontier point
     degraded_steps: list[int] = field(default_factory=list)  # re-plans lacking members
     fallback_steps: list[int] = field(default_factory=list)  # of those, scored on O_t only
-    member_workers: list[tuple[int, dict[str, str]]] = field(default_factory=list)  # (t, who
-    # answered each member) of every re-plan prediction served by remote workers
+    # (t, who answered each member) of every re-plan prediction served by remote workers
+    member_workers: list[tuple[int, dict[str, str]]] = field(default_factory=list)
 
 
 class Explorer:

@@ -1,28 +1,12 @@
 """The one grid-traversal core shared by the LiDAR (`mapex.sensor`) and visibility raycasts.
 
-Geometry (units: cells). Cell (row, col) is the unit square [row, row + 1) x [col, col + 1)
-in continuous (row, col) coordinates. A ray starts at the centre of its start cell,
-(row + 0.5, col + 0.5). Ray k of n has angle theta_k = 2 pi k / n and direction
-
-    (d_row, d_col) = (sin theta_k, cos theta_k)
-
-so theta = 0 points along +col and theta = pi / 2 along +row (down in an image).
-
-Traversal: exact Amanatides-Woo. The ray visits, in order, every cell that the geometric ray
-passes through for a positive length, the start cell first. A cell counts when the ray enters
-it at a distance t <= range_cells (the start cell is entered at t = 0). A ray that passes
-exactly through a cell corner steps diagonally: the two side cells are only touched at a
-point. The walk ends at the map border.
-
-Boundary-crossing distances are computed directly as (crossings + 0.5) * (1 / |d|), never
-accumulated, so they carry one rounding only, are monotone along the ray and are identical for
-every caller: a LiDAR scan, its retrace on the observed map and a visibility ray walk the same
-cells.
-
-Kernels call `ray_through` once per ray, `start_state` once per walk and `next_cell` per
-step; they are small @njit functions that numba inlines into the callers' loops. The walk
-state is a tuple (row, col, half_row, half_col); a walk loop reads the cell as state[0],
-state[1].
+Exact Amanatides-Woo traversal from the centre of the start cell, with boundary-crossing
+distances computed directly, never accumulated, so a LiDAR scan, its retrace on the observed
+map and a visibility ray walk the same cells; the geometry (angles, which cells count, cell
+corners, range) is in docs/algorithms.md#sensor. Kernels call `ray_through` once per ray,
+`start_state` once per walk and `next_cell` per step: small @njit functions that numba
+inlines into the callers' loops. The walk state is a tuple (row, col, half_row, half_col);
+a walk loop reads the cell as state[0], state[1].
 """
 
 from __future__ import annotations

@@ -25,8 +25,8 @@ import numpy as np
 
 from mapex.episode import IOU_REACHED, EpisodeResult
 from mapex.grid import quantise_probability
+from mapex.methods import records_team
 from mapex.plotting import plot_episode
-from mapex.team.episode import TeamResult
 from mapex.worlds.base import World
 from mapex.worlds.starts import StartSpec, start_label
 
@@ -84,14 +84,15 @@ def _not_a_file(path: Path) -> Path:
 def run_name(result: EpisodeResult) -> str:
     """A file-system-safe name for the run, e.g. `generated_0-mapex-start0-seed0`
     (`...-seed0-team2` for a team of two)."""
-    name = episode_name(result.world, result.method, result.start_spec, result.seed)
-    return f"{name}-team{result.robots}" if isinstance(result, TeamResult) else name
+    return episode_name(result.world, result.method, result.start_spec, result.seed, result.robots)
 
 
-def episode_name(world: str, method: str, start: StartSpec, seed: int) -> str:
+def episode_name(world: str, method: str, start: StartSpec, seed: int, robots: int = 1) -> str:
     """The results-folder name of a run: `<world>-<method>-<start label>-seed<s>`, with the
-    world name made file-system safe (e.g. `50052748-mapex-start-r15c380-seed0`)."""
-    return folder_name(world, method, start_label(start), seed)
+    world name made file-system safe (e.g. `50052748-mapex-start-r15c380-seed0`), and
+    `-team<N>` for a team's record (`mapex.methods.records_team`)."""
+    name = folder_name(world, method, start_label(start), seed)
+    return f"{name}-team{robots}" if records_team(method, robots) else name
 
 
 def folder_name(world: str, method: str, start: str, seed: int) -> str:
@@ -166,7 +167,7 @@ def level_key(level: float) -> str:
 
 def _team_summary(result: EpisodeResult) -> dict:
     """The team fields of a team run's record (none for a single robot)."""
-    if not isinstance(result, TeamResult):
+    if not result.is_team:
         return {}
     return {
         "team": {
@@ -205,9 +206,9 @@ def _write_run_files(result: EpisodeResult, world: World, staging: Path) -> None
         result.final_observed,
         result.final_prediction,
         world.occupancy,
-        result.trajectories if isinstance(result, TeamResult) else [result.trajectory],
+        result.trajectories,
     )
-    if isinstance(result, TeamResult):
+    if result.is_team:
         _write_team_trajectories(result, staging / TEAM_TRAJECTORIES_FILE)
 
 
@@ -242,7 +243,7 @@ def _write_curves(result: EpisodeResult, path: Path) -> None:
             writer.writerow([row[0], *(f"{v:.6f}" if math.isfinite(v) else "" for v in row[1:])])
 
 
-def _write_team_trajectories(result: TeamResult, path: Path) -> None:
+def _write_team_trajectories(result: EpisodeResult, path: Path) -> None:
     with path.open("w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(["step", "robot", "row", "col"])

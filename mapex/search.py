@@ -1,15 +1,12 @@
 """Grid shortest paths: A*, a Dijkstra shortest-path tree and an 8-connected flood fill.
 
 Cost maps are float32 (rows, cols): `np.inf` = blocked, otherwise the cost of *entering*
-that cell (>= 1 by the project's convention; any positive value works). A move into a
-neighbour costs that cell's cost times 1 (orthogonal) or sqrt(2) (diagonal). Moves are
-8-connected with no corner cutting: a diagonal move is allowed only if both orthogonal
-cells it passes are not blocked. The start cell (and A*'s goal cell) count as passable even when
-blocked in the map; entering such a cell costs the map's minimum finite cost.
-
-Ties are broken deterministically: by priority, then (A*) the smaller heuristic,
-then the smaller flat cell index. The priority queue is a binary heap in numba arrays
-(lazy deletion: stale entries are skipped when popped).
+that cell (>= 1 by the project's convention; any positive value works). A move costs the
+entered cell's cost times 1 (orthogonal) or sqrt(2) (diagonal), 8-connected with no corner
+cutting (docs/algorithms.md#navigation). The start cell (and A*'s goal cell) count as
+passable even when blocked in the map; entering such a cell costs the map's minimum finite
+cost. Ties go by priority, then (A*) the smaller heuristic, then the smaller flat cell
+index. The priority queue is a binary heap in numba arrays (stale entries skipped on pop).
 """
 
 from __future__ import annotations

@@ -1,18 +1,12 @@
 """Frontier visibility raycasts of docs/algorithms.md#methods: which cells a viewpoint would
 see, and their gain.
 
-Every method that raycasts uses this one kernel over an `opacity` map (float32, rows x cols):
-
-* "threshold": a ray stops at the first cell with opacity >= epsilon (the authors' code; on a
-  0/1 opacity, e.g. thresholded P_t, this is the deterministic raycast);
-* "accumulate": delta += opacity per walked cell, and the ray stops once delta >= epsilon (the
-  paper's text).
-
-The stopping cell is visible (the sensor sees the surface it stops on). Rays walk the cells of
-`mapex.raycast`, like the LiDAR, up to `range_cells` or the map border. A viewpoint's visible
-set is the union of its rays' cells, each counted once; its gain is the sum of `weights` over
-that set (callers give already-known cells weight 0). A *group* of viewpoints (the samples of a
-path and its end, `group_visibility_gain`) sees the union of their sets, each cell once.
+One kernel over an `opacity` map (float32, rows x cols) serves every method that raycasts,
+with the "threshold" or the "accumulate" stop rule; rays walk the cells of `mapex.raycast`,
+like the LiDAR, up to `range_cells` or the map border, and the stopping cell is visible. A
+viewpoint's gain is the sum of `weights` over its visible set, each cell once (callers give
+already-known cells weight 0); a group of viewpoints (the samples of a path and its end,
+`group_visibility_gain`) sees the union of their sets, each cell once.
 """
 
 from __future__ import annotations

@@ -1,21 +1,11 @@
 """`python -m services.bench`: what the distribution costs and what the pool buys (figures).
 
-On one map (default: KTH 50015847, the largest development map) it measures
-1. the per-step overhead of a distributed `nearest` episode (world, four workers and a
-   planner, through `services.up`) over the same episode in one process (same predictor,
-   one torch thread), from the episode loop's wall time in each run's metrics.json;
-2. a 1000-step `mapex` episode through `services.up`: wall time of the whole command
-   (start-up included) and the peak total memory (RSS) of all its processes, with the
-   workers on the inference path before issue #50 (plain module, two views) and now;
-3. two runs at once sharing the pool, with one worker per member and with two;
-4. what a hung worker costs (DESIGN: at most one timeout): a `--hung-steps` `mapex` run with
-   a g1 worker that stops answering after three predictions but keeps its session, against
-   the same run with that worker healthy (g1 started by hand beside services.up's g, g2,
-   g3 in both), and how many queries waited out the timeout (from the planner's log);
-5. a team: the per-step wall time of a `--team-steps` `mapex_team` run of 4 robots through
-   `services.up` (one planner per robot, the team world, one shared pool) against a
-   single-robot `mapex` run of the same length.
-Each figure is a median over `--repeat` runs. Benchmarks print figures; they never fail.
+On one map (default: KTH 50015847, the largest development map), per part of `--parts`:
+the per-step overhead of a distributed episode (overhead); the wall time and memory of a
+1000-step `mapex` run through `services.up` (mapex); two runs sharing the pool (pool);
+what a hung worker costs (hung); a team of 4 robots against one (team). Each figure is a
+median over `--repeat` runs. Benchmarks print figures; they never fail. What each part
+measures, and the figures: docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -36,7 +26,7 @@ from mapex.bench import DEFAULT_MAP
 from mapex.config import ExplorationConfig
 from mapex.episode import run_episode
 from mapex.prediction.learned import LearnedEnsemble
-from mapex.worlds import load_world
+from mapex.worlds import load_world, world_spec_help
 from services.codec import DEFAULT_SERVICES
 from services.supervisor import claim_hub
 
@@ -137,7 +127,11 @@ def line(name: str, value: float, unit: str, target: float | None = None) -> Non
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m services.bench", description=__doc__)
-    parser.add_argument("--world", default=str(DEFAULT_MAP) if DEFAULT_MAP.is_dir() else "default")
+    parser.add_argument(
+        "--world",
+        default=str(DEFAULT_MAP) if DEFAULT_MAP.is_dir() else "default",
+        help=f"the world: {world_spec_help()}; default: %(default)s",
+    )
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--repeat", type=int, default=3, help="runs per figure (median)")
     parser.add_argument("--pool-repeat", type=int, default=1, help="runs per pool figure")

@@ -1,9 +1,15 @@
-"""Settings of the distributed simulator: wire limits, Zenoh defaults, timeouts, and the
-live viewer. Overridable like every other configuration (`mapex.config.apply_overrides`)."""
+"""Settings of the distributed simulator, and `RunConfig`: the one configuration of a run
+(exploration + services), built once from defaults and `--set` and handed to every process
+of the run as the `--set` items that rebuild it (`as_overrides`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import argparse
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+from mapex.config import ConfigError, ExplorationConfig, apply_overrides
 
 
 @dataclass(frozen=True)
@@ -17,14 +23,16 @@ class ServicesConfig:
     hub_endpoint: str = "tcp/127.0.0.1:7447"  # well-known loopback endpoint served by services.up
     ephemeral_listen_endpoint: str = "tcp/127.0.0.1:0"  # default listener: loopback, any free port
     predict_timeout_s: float = 10.0  # per-member prediction query; a hung worker costs this once
-    predict_max_cells: int = 8_000_000  # maps above this are expected to miss the prediction
-    # timeout (one whole-map G prediction: ~0.6 us/cell on one laptop-CPU thread, so 8 M cells
-    # ~5 s, twice that with four workers on two cores): the run is marked degraded at start
+    # maps above this are expected to miss the prediction timeout (one whole-map G prediction:
+    # ~0.6 us/cell on one laptop-CPU thread, so 8 M cells ~5 s, twice that with four workers on
+    # two cores): the run is marked degraded at start
+    predict_max_cells: int = 8_000_000
     health_probe_every_s: float = 1.0  # planner: how often a benched worker is probed again
     health_probe_timeout_s: float = 2.0  # one health probe (answered at once by a live worker)
     health_check_every_s: float = 5.0  # services.up: how often its workers are probed
-    unresponsive_after_s: float = 30.0  # services.up restarts a worker stuck (busy on one
-    # prediction, or not answering probes) this long
+    # services.up restarts a worker stuck (busy on one prediction, or not answering probes)
+    # this long
+    unresponsive_after_s: float = 30.0
     supervision_poll_s: float = 0.2  # services.up / evaluate: how often children are checked
     publish_period_s: float = 0.1  # planner -> viewers: at most one batch of maps per period
     predict_retries: int = 3  # re-sends of a query that no worker was routed (no reply at all)
@@ -35,11 +43,13 @@ class ServicesConfig:
     world_drain_s: float = 2.0  # on shutdown, wait this long for the step being answered
     step_timeout_s: float = 10.0  # one step query; a lost reply is retried with the same seq
     step_retries: int = 3  # the planner gives up on the world after this many x the timeout
-    step_retry_pause_s: tuple[float, float] = (0.2, 2.0)  # back-off between step queries:
-    # first pause, doubling up to the second; a world that is gone (a query that returns at
-    # once, unanswered) is asked again until the whole step_retries x step_timeout_s is spent
-    team_step_wait_s: float = 10.0  # team world: a robot whose step request is this late
-    # after its first teammate's stands still for that step
+    # back-off between step queries: first pause, doubling up to the second; a world that is
+    # gone (a query that returns at once, unanswered) is asked again until the whole
+    # step_retries x step_timeout_s is spent
+    step_retry_pause_s: tuple[float, float] = (0.2, 2.0)
+    # team world: a robot whose step request is this late after its first teammate's stands
+    # still for that step
+    team_step_wait_s: float = 10.0
     world_wait_s: float = 60.0  # planner start-up: how long to wait for the world's keys
     workers_wait_s: float = 120.0  # planner start-up: how long to wait for every member
     supervisor_max_restarts: int = 5  # a crashed server is restarted this often, then left dead
@@ -72,11 +82,13 @@ class Ros2Config:
     volatile_depth: int = 10  # pose and paths
     heartbeat_s: float = 0.5  # sample-miss heartbeat of reliable latched topics (as rmw_zenoh)
     max_runs: int = 8  # the topics of older runs are withdrawn (their tokens undeclared)
-    trajectory_period_s: float = 1.0  # the whole trajectory at most this often per robot
-    # (and once more when the run ends); the pose goes out every step
+    # the whole trajectory at most this often per robot (and once more when the run ends); the
+    # pose goes out every step
+    trajectory_period_s: float = 1.0
     default_resolution_m: float = 0.1  # cell size until a run's world_info arrives
-    settle_s: float = 0.5  # a recording goes on this long after a run's final status: Zenoh
-    # orders samples per key only, so the last maps and poses may still be on their way
+    # a recording goes on this long after a run's final status: Zenoh orders samples per key only,
+    # so the last maps and poses may still be on their way
+    settle_s: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -86,13 +98,14 @@ class WebConfig:
     host: str = "127.0.0.1"  # loopback only unless allow_remote: the view has no authentication
     port: int = 8000  # 0: any free port, logged (8765 is the Foxglove server's)
     allow_remote: bool = False  # serve a non-loopback host and accept any Host header
-    map_events_per_s: float = 4.0  # per robot and map kind; a map held back is replaced by
-    # newer ones and sent as soon as its turn comes (the newest always gets out)
+    # per robot and map kind; a map held back is replaced by newer ones and sent as soon as its
+    # turn comes (the newest always gets out)
+    map_events_per_s: float = 4.0
     flush_poll_s: float = 0.05  # how often held-back maps are looked at
     keepalive_s: float = 5.0  # an SSE comment after this long without events (finds gone clients)
     retry_ms: int = 1000  # how long a browser waits before reconnecting a dropped stream
-    client_max_queued_events: int = 512  # a client this far behind is dropped (it reconnects
-    # and starts again from a fresh snapshot)
+    # a client this far behind is dropped (it reconnects and starts again from a fresh snapshot)
+    client_max_queued_events: int = 512
     max_metric_points: int = 5000  # metric samples kept per robot for late pages
     max_trajectory_points: int = 20000  # poses kept per robot for late pages
     max_runs: int = 32  # runs kept; the one updated least recently is forgotten first
@@ -100,3 +113,66 @@ class WebConfig:
 
 
 DEFAULT_WEB = WebConfig()
+
+
+SERVICES_SECTION = "services"  # `--set services.FIELD=VALUE` reaches `RunConfig.services`
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything the processes of one run share: the exploration settings (the world's
+    sensor and motion, the planners' methods and metrics) and the services section."""
+
+    exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
+    services: ServicesConfig = field(default_factory=ServicesConfig)
+
+    def with_overrides(self, overrides: list[str]) -> RunConfig:
+        """This configuration with `--set` items applied: `services.FIELD=VALUE` to the
+        services section, every other one to the exploration's (ConfigError, one line)."""
+        config = self
+        for item in overrides:
+            section = item.partition(".")[0]
+            path = item if section == SERVICES_SECTION else f"exploration.{item}"
+            try:
+                config = apply_overrides(config, [path])
+            except ConfigError as error:
+                raise ConfigError(str(error).replace(f"'{path}'", f"'{item}'")) from None
+        return config
+
+    def describe(self) -> str:
+        """One line for the logs: the settings that differ from the defaults."""
+        changed = self.as_overrides()
+        return "settings: " + (" ".join(changed) if changed else "the defaults")
+
+    def as_overrides(self) -> list[str]:
+        """The `--set` items that rebuild this configuration from the defaults: how it is
+        handed to every process of a run."""
+        return [
+            *_changed_fields(self.exploration, ExplorationConfig(), ""),
+            *_changed_fields(self.services, ServicesConfig(), f"{SERVICES_SECTION}."),
+        ]
+
+
+def _changed_fields(config: Any, default: Any, prefix: str) -> list[str]:
+    items = []
+    for each in dataclasses.fields(config):
+        value, base = getattr(config, each.name), getattr(default, each.name)
+        if dataclasses.is_dataclass(value):
+            items += _changed_fields(value, base, f"{prefix}{each.name}.")
+        elif value != base:
+            text = ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
+            items.append(f"{prefix}{each.name}={text}")
+    return items
+
+
+def add_run_config_argument(parser: argparse.ArgumentParser) -> None:
+    """--set SECTION.FIELD=VALUE (repeatable) into `args.overrides`, for `RunConfig`."""
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help="override a setting of the run (repeatable): an exploration field, e.g. "
+        "motion.cells_per_step=2, or a services one, e.g. services.predict_timeout_s=20",
+    )

@@ -1,17 +1,12 @@
 """The planner's side of the predictor pool: an ensemble whose members answer over Zenoh.
 
-`ZenohEnsemble` tracks the live workers of every member through their liveliness tokens
-(a query at start plus a subscriber for joins and leaves). A prediction sends one query per
-member, all issued before any reply is awaited, each to the least recently used live worker
-of that member: replicas share the load and every query is answered by exactly one worker.
-A member whose worker times out, refuses, sends an invalid reply or has no live worker is
-left out, and the result says which members answered (`member_ids`) and which worker served
-each (`workers`): the planner goes on with those (docs/design.md#reliability) and records
-the step as degraded. A worker that let a query time out is *benched*: it gets no query
-until it answers a health probe saying it is not stuck in a prediction, so a hung worker
-costs one timeout, not one per query. Each request carries its budget (the timeout), so the
-worker drops what it dequeues after the planner gave up. Its interface is that of every
-`Predictor`: `predict`, `predict_later`, `wait` and `close`.
+`ZenohEnsemble` tracks the live workers of every member through their liveliness tokens and
+sends each prediction's queries at once, each to the least recently used live worker of its
+member. A member that does not answer is left out and the step recorded as degraded; a
+worker that let a query time out is benched until a health probe says it is not stuck; each
+request carries its budget (docs/design.md#following-one-scan,
+docs/design.md#reliability). Its interface is that of every `Predictor`: `predict`,
+`predict_later`, `wait` and `close`.
 """
 
 from __future__ import annotations

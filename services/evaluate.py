@@ -4,23 +4,10 @@
         [--ablations] [--starts 0,1,2,3 | --starts-file FILE] [--steps 1000] [--seeds 0]
         [--jobs 2] [--out results/evaluation] [--set SECTION.FIELD=VALUE ...] [Zenoh flags]
 
-Episodes run in parallel planner processes (`services.planner --world ... --start ...`,
-`--jobs` at a time) that share one predictor pool: the workers spawned here, plus any
-worker on another machine that joins the same Zenoh network (`--connect`, see deploy/), so
-adding workers adds throughput. Each planner writes its episode to a hidden folder, which
-this process, once the planner has exited cleanly, renames to
-`<out>/<world>-<method>-start<i>-seed<s>/` (`mapex.results.episode_name`); rerunning the
-same command skips those, so a kill at any moment loses at most the episodes in flight (and
-a planner orphaned by the kill, whose pool is gone, can add nothing). A folder counts only
-if its metrics and curves parse and name the same run and configuration; any other is moved
-to `<out>/.broken/` (named in the log) and run again. `--out` is checked (created, a probe
-file written) before anything runs. At the end the report (`python -m mapex.report <out>`)
-is written to `<out>/report/`; it refuses a folder with missing runs (exit 1).
-
-Starts are the corners 0-3 of each map's valid space, or the explicit cells a published
-protocol lists: `--starts-file FILE` holds a JSON object {"<map name>": [[row, col], ...]}
-(0.1 m grid) naming every map of `--maps`; those runs are named `...-start-r<row>c<col>-...`.
-Every start is checked before anything runs (one line naming map and cell, exit 2).
+Runs every episode in a planner process of its own (`--jobs` at a time) on one shared
+predictor pool, keeps each finished episode in `<out>` so that the same command resumes,
+and writes the report to `<out>/report/`. How it runs, resumes and checks its input:
+docs/design.md#an-experiment-servicesevaluate.
 """
 
 from __future__ import annotations
@@ -40,34 +27,37 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from mapex.budget import Steps, add_budget_arguments, budget_overrides, resolve_steps
+from mapex.budget import Steps, add_budget_arguments, resolve_steps
 from mapex.config import (
     ConfigError,
     ExplorationConfig,
     WorldConfig,
-    add_override_argument,
-    apply_overrides,
     argparse_type,
 )
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
-from mapex.methods import ABLATIONS, MAIN_COMPARISON, parse_method_list
+from mapex.methods import (
+    ABLATIONS,
+    MAIN_COMPARISON,
+    TEAM_METHODS,
+    parse_method_list,
+    records_team,
+)
 from mapex.prediction.config import inference_from_args
 from mapex.report.runs import ReportError, load_run
 from mapex.results import METRICS_FILE, check_output_folder, episode_name, move_into_place
-from mapex.team.methods import ALL_METHODS, TEAM_METHODS, check_team_flags
-from mapex.worlds import StartSpec, WorldError, load_world
+from mapex.team.starts import check_team_size
+from mapex.worlds import StartSpec, WorldError, load_world, world_spec_help
 from mapex.worlds.starts import start_argument, start_cell, start_label
-from services.codec import DEFAULT_SERVICES
-from services.config import ServicesConfig
-from services.health import PoolWatch
-from services.keys import ID_MAX_CHARS
-from services.messages import MetricsMessage
-from services.outside_tools import (
+from services.bridges.outside_tools import (
     OutsideTools,
     add_outside_tool_arguments,
     bridge_spec,
     check_outside_tool_arguments,
 )
+from services.config import RunConfig, add_run_config_argument
+from services.health import PoolWatch
+from services.keys import ID_MAX_CHARS
+from services.messages import MetricsMessage
 from services.pool import RunProgress, add_pool_arguments, hub_session_config, worker_specs
 from services.serving import configure_logging, stop_on_signals
 from services.supervisor import ProcessSpec, Supervisor
@@ -95,8 +85,7 @@ class Episode:
 
     @property
     def name(self) -> str:
-        name = episode_name(self.world_name, self.method, self.start, self.seed)
-        return f"{name}-team{self.robots}" if self.method in TEAM_METHODS else name
+        return episode_name(self.world_name, self.method, self.start, self.seed, self.robots)
 
     @property
     def run_id(self) -> str:
@@ -213,7 +202,7 @@ def run_problem(episode: Episode, folder: Path, config: dict | None = None) -> s
     if "reached" not in record.metrics:
         return "it has no time-to-level record (written by an older version)"
     team = record.metrics.get("team") or {}
-    if episode.method in TEAM_METHODS and team.get("robots") != episode.robots:
+    if records_team(episode.method, episode.robots) and team.get("robots") != episode.robots:
         return f"it holds a team of {team.get('robots')}, not {episode.robots}"
     differing = config_difference(record.metrics.get("config"), config)
     return None if differing is None else f"it was run with another {differing}"
@@ -263,8 +252,9 @@ def remove_staging(out_dir: Path) -> int:
 
 
 def planner_spec(
-    episode: Episode, args: argparse.Namespace, out_dir: Path, flags: list[str]
+    episode: Episode, settings: list[str], out_dir: Path, flags: list[str]
 ) -> ProcessSpec:
+    """The planner process of `episode`, with the run's `--set` items `settings`."""
     planner_args = [
         "--run", episode.run_id, "--world", episode.world_spec,
         "--start", start_argument(episode.start),
@@ -272,8 +262,8 @@ def planner_spec(
         "--out", str(planner_folder(episode, out_dir)), "--no-progress",
         "--robots", str(episode.robots),
     ]  # fmt: skip
-    for override in [*budget_overrides(args), *args.overrides]:
-        planner_args += ["--set", override]
+    for item in settings:
+        planner_args += ["--set", item]
     return ProcessSpec(f"episode-{episode.run_id}", "services.planner", (*planner_args, *flags))
 
 
@@ -285,9 +275,10 @@ def run_episodes(
     progress: RunProgress,
     stop: threading.Event,
     watch: PoolWatch | None = None,
+    settings: list[str] | None = None,
 ) -> tuple[int, list[str]]:
     """Run `todo`, `args.jobs` at a time; (episodes finished, failure lines). `watch` kills
-    stuck workers for the supervisor to restart."""
+    stuck workers for the supervisor to restart; `settings`: the run's `--set` items."""
     queue, running, done, failures = list(todo), {}, [], []
     bar = tqdm(
         total=sum(episode.steps for episode in todo),
@@ -303,7 +294,7 @@ def run_episodes(
                 watch.check()
             while queue and len(running) < args.jobs:
                 episode = queue.pop(0)
-                spec = planner_spec(episode, args, args.out, flags)
+                spec = planner_spec(episode, settings or [], args.out, flags)
                 supervisor.start(spec)
                 running[spec.name] = episode
             for name, episode in list(running.items()):
@@ -324,13 +315,14 @@ def run_episodes(
     return len(done), failures
 
 
-def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) -> int:
+def main(args: argparse.Namespace) -> int:
     began = time.monotonic()
-    exploration = apply_overrides(ExplorationConfig(until_iou=args.until_iou), args.overrides)
+    run_config = RunConfig(ExplorationConfig(until_iou=args.until_iou))
+    run_config = run_config.with_overrides(args.overrides)
+    exploration, services = run_config.exploration, run_config.services
     methods = list(args.methods) + (list(ABLATIONS) if args.ablations else [])
     starts = args.starts if args.starts_file is None else read_starts_file(args.starts_file)
-    for method in methods:
-        check_team_flags(method, args.robots if method in TEAM_METHODS else 1)
+    check_team_size(args.robots)
     if args.robots > 1 and not any(method in TEAM_METHODS for method in methods):
         raise ConfigError(f"--robots {args.robots} needs a team method ({', '.join(TEAM_METHODS)})")
     episodes = plan_episodes(
@@ -355,6 +347,7 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
         flags,
         inference_from_args(args),
         id_prefix=f"ev{os.getpid()}",
+        settings=run_config.as_overrides(),
     )
     watch = PoolWatch(session, supervisor, workers, services)
     tools = None
@@ -363,7 +356,9 @@ def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) 
         if todo:
             for spec in bridge_spec(args, flags) + workers:
                 supervisor.start(spec)
-        done, failures = run_episodes(supervisor, todo, args, flags, progress, stop, watch)
+        done, failures = run_episodes(
+            supervisor, todo, args, flags, progress, stop, watch, run_config.as_overrides()
+        )
     finally:
         if tools is not None:
             tools.close()
@@ -416,17 +411,17 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="+",
         required=True,
         metavar="MAP",
-        help="KTH map directories and/or generated:SEED / generated-open:SEED worlds",
+        help=f"the worlds, each {world_spec_help()}",
     )
     parser.add_argument(
         "--methods",
-        type=argparse_type(lambda text: parse_method_list(text, ALL_METHODS)),
+        type=argparse_type(lambda text: parse_method_list(text)),
         default=list(MAIN_COMPARISON),
         help="comma-separated (default: "
         + ",".join(MAIN_COMPARISON)
-        + "); team methods ("
+        + "); the team methods ("
         + ",".join(TEAM_METHODS)
-        + ") run teams of --robots",
+        + ") run teams of --robots, the others alone",
     )
     parser.add_argument(
         "--robots", type=int, default=1, help="team size of the team methods (default 1)"
@@ -448,7 +443,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_budget_arguments(parser)
     parser.add_argument("--jobs", type=int, default=2, help="episodes at once (default 2)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="default: %(default)s")
-    add_override_argument(parser)
+    add_run_config_argument(parser)
     add_pool_arguments(parser)
     parser.add_argument("--no-report", action="store_true", help="skip the report at the end")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")

@@ -1,16 +1,10 @@
 """Version-1 key expressions: where things are published, built and parsed only here.
 
-* per robot of a run: `mapex/@v1/<run>/<robot>/<topic>` for each topic of `ROBOT_TOPICS`;
-* per run: `mapex/@v1/<run>/ground_truth` and `mapex/@v1/<run>/world_info`;
-* predictor queryables: `mapex/@v1/predict/<member>/<worker_id>`; a planner sends each query
-  to one chosen worker, so replicas of a member add throughput without duplicate work;
-* worker health probes: `mapex/@v1/health/<member>/<worker_id>` (answered at once, even while
-  the worker computes, with how long its current prediction has been running);
-* liveliness tokens: `mapex/@v1/alive/predict/<member>/<worker_id>`,
-  `mapex/@v1/alive/world/<run>` and `mapex/@v1/alive/planner/<run>/<robot>`.
-
-Run, robot and worker ids match `[a-z0-9_-]{1,ID_MAX_CHARS}`; "predict", "health" and "alive"
-are not run ids (they would clash with the keys above).
+Per robot of a run `mapex/@v1/<run>/<robot>/<topic>` for each topic of `ROBOT_TOPICS`, per
+run `mapex/@v1/<run>/<topic>` for each of `RUN_TOPICS`, the predictor queryables and health
+probes `mapex/@v1/{predict,health}/<member>/<worker_id>` and the liveliness tokens under
+`mapex/@v1/alive/`. Run, robot and worker ids match `[a-z0-9_-]{1,ID_MAX_CHARS}`; "predict",
+"health" and "alive" are not run ids. Every key and what it carries: docs/protocol.md.
 """
 
 from __future__ import annotations

@@ -1,15 +1,12 @@
 """Publish frames so that late joiners get the latest one: a publisher and a queryable per key.
 
-The planner publishes its maps (and goal, path, status, ...) through a `LatestPublisher`: every
-`put` goes out on the key's Zenoh publisher for live subscribers and is remembered as the key's
-latest payload; a queryable on exactly that key answers a `get` with it, so a viewer started
-mid-run (`services.watch`) shows the current frame at once instead of waiting for the next put.
-Before the first put of a key its queryable sends no reply. Queryables are never declared on
-wildcards: they would catch other services' queries.
-
-Zenoh drops a put at any congested hop by default, which suits map frames (a newer one
-follows). A key in `blocking_keys` waits for room instead: for small messages a subscriber
-cannot do without, such as a run's final status, which no later put replaces.
+Every `put` of a `LatestPublisher` goes out on the key's Zenoh publisher and is remembered
+as the key's latest payload; a queryable on exactly that key answers a `get` with it, so a
+viewer started mid-run shows the current frame at once (docs/protocol.md). Queryables are
+never declared on wildcards: they would catch other services' queries. A put is dropped at
+a congested hop by default, which suits map frames (a newer one follows); a key in
+`blocking_keys` waits for room instead, for small messages no later put replaces, such as a
+run's final status.
 """
 
 from __future__ import annotations

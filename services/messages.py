@@ -96,41 +96,8 @@ def decode_message(
 
 
 @dataclass(frozen=True, eq=False)
-class StepRequest(Message):
-    """Planner -> world query on `step`: drive through `cells` int32 (k, 2) in order, then scan.
-
-    seq: the robot's step number, 0 for its first request, then one more per step. A world
-    answers a repeat of the last seq it served with the same reply without moving the robot
-    again, so a retry after a lost reply is harmless; any other seq is refused.
-    k = 0 asks for a scan where the robot stands (seq 0: the initial scan before t = 0).
-    run_token: the run's secret (services.up gives it to the world and its planners); a
-    world started with a token refuses every step without it. The reply is a ScanReply.
-    """
-
-    TYPE: ClassVar[str] = "step_request"
-    seq: int
-    cells: np.ndarray
-    run_token: str | None = None
-
-    def __post_init__(self) -> None:
-        _set(self, "seq", _checked_count(self.TYPE, "seq", self.seq))
-        _set(self, "cells", _checked_cells(self.TYPE, "cells", self.cells))
-        if self.run_token is not None:
-            _set(self, "run_token", _one_line(self.TYPE, "run_token", self.run_token))
-
-    def _fields(self, config: ServicesConfig) -> dict[str, Any]:
-        fields = {"seq": self.seq, "cells": encode_array(self.cells, config)}
-        return fields if self.run_token is None else {**fields, "run_token": self.run_token}
-
-    @classmethod
-    def _read(cls, reader: FieldReader) -> StepRequest:
-        seq, cells = reader.integer("seq"), reader.array("cells", "int32", 2)
-        return cls(seq, cells, reader.added_text("run_token"))
-
-
-@dataclass(frozen=True, eq=False)
 class ScanReply(Message):
-    """World -> planner reply to a step (also published on `scan`): a `mapex.sensor.Scan`.
+    """One robot's scan after a step, published on `scan`: a `mapex.sensor.Scan`.
 
     pose (row, col); n_cells uint16 (n_rays,); hit bool (n_rays,).
     """
@@ -170,16 +137,12 @@ class ScanReply(Message):
 
 
 @dataclass(frozen=True, eq=False)
-class TeamStepRequest(Message):
-    """A team robot's planner -> the team's world on `step`: its motion of step seq - 1 (as
-    `StepRequest`), whether it has nothing left to explore (`done`), and, when it re-planned
-    (`claimed`), its new claim: goal [row, col] and score, or nil (no goal), and the
-    claimed cells `claim_visible` bool (rows, cols) (docs/algorithms.md#teams). The score is
-    -inf for a goal its method had ruled out and took because nothing else was left
-    (`nearest_team` near a teammate's goal); NaN and +inf are refused.
-    """
+class StepRequest(Message):
+    """A robot's planner -> its world on `step` (docs/protocol.md): its motion of step
+    seq - 1, whether it has nothing left to explore, and its new claim when it re-planned
+    with a method that coordinates."""
 
-    TYPE: ClassVar[str] = "team_step_request"
+    TYPE: ClassVar[str] = "step_request"
     seq: int
     cells: np.ndarray
     done: bool
@@ -212,7 +175,7 @@ class TeamStepRequest(Message):
         }  # fmt: skip
 
     @classmethod
-    def _read(cls, reader: FieldReader) -> TeamStepRequest:
+    def _read(cls, reader: FieldReader) -> StepRequest:
         seq, cells = reader.integer("seq"), reader.array("cells", "int32", 2)
         done, claimed = reader.flag("done"), reader.flag("claimed")
         goal, score = reader.optional_cell("claim_goal"), reader.optional_number("claim_score")
@@ -224,19 +187,12 @@ class TeamStepRequest(Message):
 
 
 @dataclass(frozen=True, eq=False)
-class TeamScanReply(Message):
-    """The team's world -> every robot's planner, the reply to a `team_step_request` of seq:
-    every robot's scan after that step (poses int32 (N, 2), n_cells uint16 (N, rays), hit
-    bool (N, rays); `stood_still` bool (N,): robots whose planner did not send the step in
-    time, or that are lost), the claims made at it (`claim_state` uint8 (N,): 0 none, 1 a
-    claim, 2 withdrawn; `claim_goals` int32 (N, 2), `claim_scores` float64 (N,),
-    `claim_visible` bool (C, rows, cols): the claimed cells of the C robots with a new claim,
-    in robot order), `lost` bool (N,): robots whose planner is gone
-    (its liveliness token went; its claim is withdrawn at the step it is first lost), and
-    `finished`: every robot left was done, no step was taken (the scans are then empty).
-    """
+class StepReply(Message):
+    """The world -> every robot's planner, the reply to the `step_request`s of one seq
+    (docs/protocol.md): every robot's scan after that step, the claims made at it, the
+    robots that stood still or are lost, and whether the team is finished."""
 
-    TYPE: ClassVar[str] = "team_scan_reply"
+    TYPE: ClassVar[str] = "step_reply"
     seq: int
     finished: bool
     poses: np.ndarray
@@ -251,11 +207,11 @@ class TeamScanReply(Message):
 
     def __post_init__(self) -> None:
         _set(self, "seq", _checked_count(self.TYPE, "seq", self.seq))
-        for name, dtype, ndim in TEAM_REPLY_ARRAYS:
+        for name, dtype, ndim in STEP_REPLY_ARRAYS:
             _check_array(self.TYPE, name, getattr(self, name), dtype, ndim)
         robots = len(self.claim_state)
         scanned = {len(self.poses), len(self.n_cells), len(self.hit)}
-        claims = {len(getattr(self, name)) for name in TEAM_CLAIM_FIELDS}
+        claims = {len(getattr(self, name)) for name in CLAIM_FIELDS}
         flags = {len(self.stood_still), len(self.lost)}
         if claims != {robots} or scanned not in ({robots}, {0}) or flags != {robots}:
             raise ProtocolError(f"{self.TYPE}: every per-robot array needs {robots} rows")
@@ -274,23 +230,23 @@ class TeamScanReply(Message):
 
     def _fields(self, config: ServicesConfig) -> dict[str, Any]:
         fields = {
-            name: encode_array(getattr(self, name), config) for name, _, _ in TEAM_REPLY_ARRAYS
+            name: encode_array(getattr(self, name), config) for name, _, _ in STEP_REPLY_ARRAYS
         }
         return {"seq": self.seq, "finished": self.finished, **fields}
 
     @classmethod
-    def _read(cls, reader: FieldReader) -> TeamScanReply:
+    def _read(cls, reader: FieldReader) -> StepReply:
         seq, finished = reader.integer("seq"), reader.flag("finished")
         arrays = {
             name: reader.array(name, np.dtype(dtype).name, ndim)
-            for name, dtype, ndim in TEAM_REPLY_ARRAYS
+            for name, dtype, ndim in STEP_REPLY_ARRAYS
         }
         return cls(seq, finished, **arrays)
 
 
-CLAIM_NONE, CLAIM_MADE, CLAIM_WITHDRAWN = 0, 1, 2  # claim_state codes of a team reply
-TEAM_CLAIM_FIELDS = ("claim_state", "claim_goals", "claim_scores")  # a row per robot
-TEAM_REPLY_ARRAYS = (
+CLAIM_NONE, CLAIM_MADE, CLAIM_WITHDRAWN = 0, 1, 2  # claim_state codes of a step reply
+CLAIM_FIELDS = ("claim_state", "claim_goals", "claim_scores")  # a row per robot
+STEP_REPLY_ARRAYS = (
     ("poses", np.int32, 2),
     ("n_cells", np.uint16, 2),
     ("hit", np.bool_, 2),
@@ -596,13 +552,17 @@ class StatusMessage(Message):
 
 @dataclass(frozen=True, eq=False)
 class WorldInfo(Message):
-    """World -> anyone on `world_info`: map size (rows, cols), cell size, name, start cells."""
+    """World -> anyone on `world_info`: map size (rows, cols), cell size, name, start cells,
+    and the sensor and motion settings the world simulates (None: not said)."""
 
     TYPE: ClassVar[str] = "world_info"
     name: str
     shape: tuple[int, int]
     resolution_m: float
     starts: np.ndarray
+    n_rays: int | None = None
+    range_cells: int | None = None
+    cells_per_step: int | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
@@ -619,6 +579,13 @@ class WorldInfo(Message):
         if len(starts) and (starts >= np.array(shape)).any():
             raise ProtocolError(f"{self.TYPE}: a start cell lies outside the {shape} map")
         _set(self, "starts", starts)
+        for name in WORLD_SETTINGS:
+            if getattr(self, name) is not None:
+                _set(self, name, _checked_count(self.TYPE, name, getattr(self, name)))
+
+    def settings(self) -> dict[str, int | None]:
+        """The sensor and motion settings the world simulates, by field name."""
+        return {name: getattr(self, name) for name in WORLD_SETTINGS}
 
     def _fields(self, config: ServicesConfig) -> dict[str, Any]:
         return {
@@ -626,16 +593,23 @@ class WorldInfo(Message):
             "shape": list(self.shape),
             "resolution_m": self.resolution_m,
             "starts": encode_array(self.starts, config),
+            **{name: value for name, value in self.settings().items() if value is not None},
         }
 
     @classmethod
     def _read(cls, reader: FieldReader) -> WorldInfo:
-        return cls(
-            reader.text("name"),
-            reader.cell("shape"),
-            reader.number("resolution_m"),
-            reader.array("starts", "int32", 2),
-        )
+        name, shape = reader.text("name"), reader.cell("shape")
+        resolution, starts = reader.number("resolution_m"), reader.array("starts", "int32", 2)
+        settings = [reader.added_number(field) for field in WORLD_SETTINGS]
+        return cls(name, shape, resolution, starts, *(_whole(value) for value in settings))
+
+
+WORLD_SETTINGS = ("n_rays", "range_cells", "cells_per_step")  # world_info's shared settings
+
+
+def _whole(value: float | None) -> int | float | None:
+    """A count read as a number: an int when whole (else left for __post_init__ to refuse)."""
+    return int(value) if value is not None and float(value).is_integer() else value
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,22 +1,14 @@
 """The planner (robot brain): one robot's exploration episode against a world process.
 
-    python -m services.planner --run RUN [--robot 0] [--method mapex] [--steps 1000]
-        [--seed 0] [--out DIR] [--set SECTION.FIELD=VALUE ...] [--mode ...] [--connect ...]
-
-It runs the same loop as `python -m mapex run` (`mapex.episode.run_episode`), with the
-world process as the step source (`services.world_client.ZenohWorld`) and the predictor
-workers as the ensemble (`services.ensemble_client.ZenohEnsemble`, every member asked in
-parallel). A member that does not answer in time is left out; with fewer than two members
-the re-plan scores frontiers on the observed map, and the record lists those steps
-(docs/design.md#reliability). After each step it publishes the observed map, the predictions
-(main, mean, variance), frontiers with scores, goal, path, metrics and status on
-`mapex/@v1/<run>/<robot>/...` (`services.publishing`), and at the end writes the same
-results folder as `python -m mapex run`. With `--world SPEC --start S` the planner simulates
-the world itself (no world process; batch evaluation runs episodes this way) and still asks
-the predictor pool. A start S is a corner 0-3 or a cell ROW,COL; against a world process,
-`--start` names the start the world placed the robot at (checked; the run is named by it),
-and every step carries the run token of `MAPEX_RUN_TOKEN` when that is set (services.up sets
-it). Bad flags or starts: one line, exit 2; the world gone or refusing a step: one line, exit 1.
+It runs the loop of `python -m mapex run` (`mapex.episode.run_episode`) for its robot of
+the run's team, with the world process as the step source (`services.world_client`) and
+the predictor workers as the ensemble (`services.ensemble_client`); members that do not
+answer in time are left out and the record says so (docs/design.md#reliability). After each
+step it publishes what it knows on `mapex/@v1/<run>/<robot>/...` (`services.publishing`)
+and at the end writes the results folder of `python -m mapex run`. With `--world` it
+simulates the world itself (batch evaluation runs so). A planner whose sensor or motion
+settings differ from its world's refuses to start. Bad flags: one line, exit 2; the world
+gone or refusing a step: one line, exit 1.
 """
 
 from __future__ import annotations
@@ -33,22 +25,23 @@ from pathlib import Path
 import zenoh
 from tqdm import tqdm
 
-from mapex.config import (
-    ConfigError,
-    ExplorationConfig,
-    add_override_argument,
-    apply_overrides,
-)
+from mapex.config import ConfigError, ExplorationConfig
 from mapex.episode import EpisodeResult, run_episode
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
+from mapex.methods import METHODS
 from mapex.prediction.base import MEMBER_NAMES
 from mapex.results import OutputError, check_destination, describe_end, destination, write_results
-from mapex.team.episode import run_team_episode
-from mapex.team.methods import ALL_METHODS, TEAM_METHODS, check_team_flags
-from mapex.worlds import StartSpec, World, WorldError, load_world, start_label
+from mapex.team.starts import check_team_size, team_start_cells
+from mapex.worlds import (
+    StartSpec,
+    World,
+    WorldError,
+    load_world,
+    start_label,
+    world_spec_help,
+)
 from mapex.worlds.starts import add_start_argument, start_cell, start_spec_of
-from services.codec import DEFAULT_SERVICES
-from services.config import ServicesConfig
+from services.config import RunConfig, ServicesConfig, add_run_config_argument
 from services.ensemble_client import ZenohEnsemble
 from services.keys import ID_MAX_CHARS, alive_planner_key, is_valid_id, robot_id
 from services.publishing import RunPublisher
@@ -56,7 +49,6 @@ from services.serving import configure_logging, run_token_from_env, supervisor_g
 from services.world_client import (
     StepRefusedError,
     WorldUnavailableError,
-    ZenohTeamWorld,
     ZenohWorld,
 )
 from services.zenoh_config import (
@@ -67,6 +59,8 @@ from services.zenoh_config import (
 )
 
 log = logging.getLogger("services.planner")
+
+DEFAULT_RUN_CONFIG = RunConfig()
 
 Progress = Callable[[int], None]
 
@@ -91,41 +85,31 @@ def explore(
     robot: int,
     method: str,
     seed: int = 0,
-    exploration: ExplorationConfig | None = None,
-    services: ServicesConfig = DEFAULT_SERVICES,
+    run_config: RunConfig = DEFAULT_RUN_CONFIG,
     progress: Progress | None = None,
     local: LocalWorld | None = None,
     start: StartSpec | None = None,
 ) -> tuple[EpisodeResult, World]:
     """Run robot `robot`'s episode of `run` with the predictor processes, and the world
-    process (or the `local` world simulated here). `start`, with a world process: the start
-    it must have placed the robot at (default: whichever it did)."""
-    exploration = exploration or ExplorationConfig()
-    team_starts: list[StartSpec] = []
+    process (or the `local` world simulated here, every robot decided here). `start`, with a
+    world process: the start it must have placed the robot at (default: whichever it did)."""
+    exploration, services = run_config.exploration, run_config.services
     if local is None:
-        source = ZenohWorld(session, run, services, run_token_from_env())
-        world, start, team_starts = _remote_start(source, run, robot, exploration, start)
-        if method in TEAM_METHODS:  # one robot of a team world: every robot's scans come back
-            source = ZenohTeamWorld(session, run, robot, world.shape, services, source.run_token)
+        source = ZenohWorld(session, run, robot, services, run_token_from_env())
+        world, starts = _remote_start(source, run, robot, exploration, start)
+        robots, here = len(starts), [robot]
     else:
-        source, world, start = None, load_world(local.spec), local.start
-        start_cell(world, start, exploration.world.start_clearance_cells)  # WorldError if bad
-        team_starts = [start] * (method in TEAM_METHODS)
+        source, world = None, load_world(local.spec)
+        starts, robots, here = local.start, local.robots, list(range(local.robots))
+        team_start_cells(world, [starts], robots, exploration)  # WorldError if bad
     oversized = prediction_size_warning(world.shape, services)
     if oversized is not None:
         log.warning("%s", oversized)
-    team = method in TEAM_METHODS
-    robots = (local.robots if local is not None else len(team_starts)) if team else 1
-    here = [robot] if team and local is None else list(range(robots))  # robots decided here
     publishers = [
-        RunPublisher(session, run, robot_id(k if team else robot), services, local is not None)
-        for k in here
+        RunPublisher(session, run, robot_id(k), services, local is not None) for k in here
     ]
     publisher = publishers[0]
-    tokens = [
-        session.liveliness().declare_token(alive_planner_key(run, robot_id(k)))
-        for k in (here if team else [robot])
-    ]
+    tokens = [session.liveliness().declare_token(alive_planner_key(run, robot_id(k))) for k in here]
     try:
         with ZenohEnsemble(session, services) as ensemble:
             publisher.status(0, "starting", f"waiting for members {', '.join(MEMBER_NAMES)}")
@@ -141,17 +125,9 @@ def explore(
                 if progress is not None:
                     progress(t)
 
-            if team:
-                result = run_team_episode(
-                    world, method, ensemble, robots, team_starts, seed, exploration, on_step,
-                    source=source, local=here,
-                )  # fmt: skip
-            else:
-                result = run_episode(
-                    world, method, ensemble, start, seed, exploration,
-                    lambda t, explorer, recorder: on_step(t, [explorer], recorder),
-                    source=source, robot=robot,
-                )  # fmt: skip
+            result = run_episode(
+                world, method, ensemble, starts, seed, exploration, on_step, source, robots, here
+            )
         result = dataclasses.replace(result, degraded_from_start=oversized)
         for each in publishers:
             each.finished(result, _summary_line(result))
@@ -185,24 +161,40 @@ def _remote_start(
     robot: int,
     exploration: ExplorationConfig,
     expected: StartSpec | None,
-) -> tuple[World, StartSpec, list[StartSpec]]:
-    """The world process's world, the start of robot `robot` in it (`expected` when the
-    world placed the robot there, else the corner or cell it did place it at) and the
-    cells of every robot of the run."""
+) -> tuple[World, list[StartSpec]]:
+    """The world process's world and the cells of every robot of the run; PlannerError (one
+    line) when the world simulates other sensor or motion settings than this planner's, or
+    did not place robot `robot` at `expected` (its corner or cell)."""
     info, world = source.fetch()
+    mine = {
+        "n_rays": exploration.sensor.n_rays,
+        "range_cells": exploration.sensor.range_cells,
+        "cells_per_step": exploration.motion.cells_per_step,
+    }
+    differ = [
+        f"{name} {value} (here {mine[name]})"
+        for name, value in info.settings().items()
+        if value is not None and value != mine[name]
+    ]
+    if differ:
+        raise PlannerError(
+            f"the world of run {run} simulates {', '.join(differ)}: start the planner with the "
+            "world's --set"
+        )
     if not 0 <= robot < len(info.starts):
         raise PlannerError(f"run {run} has {len(info.starts)} robots, there is no robot {robot}")
     clearance = exploration.world.start_clearance_cells
     cells: list[StartSpec] = [(int(row), int(col)) for row, col in info.starts]
-    placed = cells[robot]
-    if expected is None:
-        return world, start_spec_of(world, placed, clearance), cells
-    wanted = start_cell(world, expected, clearance)
-    if wanted != placed:
-        raise PlannerError(
-            f"the world placed robot {robot_id(robot)} at {placed}, not at its start {wanted}"
-        )
-    return world, expected, cells
+    if expected is not None:
+        wanted = start_cell(world, expected, clearance)
+        if wanted != cells[robot]:
+            raise PlannerError(
+                f"the world placed robot {robot_id(robot)} at {cells[robot]}, not at its start "
+                f"{wanted}"
+            )
+    if len(cells) == 1:  # a robot alone is named by its start: the corner it stands on
+        return world, [start_spec_of(world, cells[0], clearance) if expected is None else expected]
+    return world, cells
 
 
 def _summary_line(result: EpisodeResult) -> str:
@@ -223,8 +215,7 @@ def main(
     method: str = "mapex",
     seed: int = 0,
     out: Path | None = None,
-    exploration: ExplorationConfig | None = None,
-    services: ServicesConfig = DEFAULT_SERVICES,
+    run_config: RunConfig = DEFAULT_RUN_CONFIG,
     progress: Progress | None = None,
     local: LocalWorld | None = None,
     start: StartSpec | None = None,
@@ -234,7 +225,7 @@ def main(
     session = open_session(config)
     try:
         result, world = explore(
-            session, run, robot, method, seed, exploration, services, progress, local, start
+            session, run, robot, method, seed, run_config, progress, local, start
         )
     finally:
         session.close()
@@ -255,23 +246,23 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--run", required=True, help="run id, the <run> chunk of the keys")
     parser.add_argument("--robot", type=int, default=0, help="robot index in the run (default 0)")
-    parser.add_argument("--method", default="mapex", choices=ALL_METHODS)
+    parser.add_argument("--method", default="mapex", choices=list(METHODS))
     parser.add_argument(
         "--robots",
         type=int,
         default=1,
-        help="with --world: a team of this many robots sharing one map (a team method)",
+        help="with --world: a team of this many robots sharing one map, all decided here",
     )
     parser.add_argument("--steps", type=int, default=1000, help="time budget T (default 1000)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (UPEN's RRT); default 0")
     parser.add_argument("--out", type=Path, default=None, help="results folder")
-    add_override_argument(parser)
+    add_run_config_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument(
         "--world",
         default=None,
-        help="simulate this world here instead of asking a world process: 'default', "
-        "'generated:SEED', 'generated-open:SEED' or a KTH map directory (needs --start)",
+        help="simulate this world here instead of asking a world process (needs --start): "
+        + world_spec_help(),
     )
     add_start_argument(
         parser, None, "with --world where to start, else where the world placed the robot"
@@ -293,21 +284,22 @@ def run_cli(argv: list[str] | None = None) -> int:
     if args.robots > 1 and args.world is None:
         parser.error("--robots needs --world (a team is simulated here)")
     try:
-        check_team_flags(args.method, args.robots)
+        check_team_size(args.robots)
     except ConfigError as error:
         parser.error(str(error))
     local = None if args.world is None else LocalWorld(args.world, args.start, args.robots)
     configure_logging(f"planner[{args.run}/{robot_id(args.robot)}]")
     try:
-        exploration = apply_overrides(ExplorationConfig(steps=args.steps), args.overrides)
-        config = zenoh_config_from_args(args)
+        run_config = RunConfig(ExplorationConfig(steps=args.steps)).with_overrides(args.overrides)
+        config = zenoh_config_from_args(args, run_config.services)
     except (ConfigError, ZenohConfigError) as error:
         print(f"services.planner: error: {error}", file=sys.stderr)
         return EXIT_USAGE
+    log.info("%s", run_config.describe())
     bar = tqdm(total=args.steps, unit="step", disable=args.no_progress, file=sys.stderr)
     try:
         result, out_dir = main(
-            config, args.run, args.robot, args.method, args.seed, args.out, exploration,
+            config, args.run, args.robot, args.method, args.seed, args.out, run_config,
             progress=lambda t: bar.update(t - bar.n), local=local, start=args.start,
         )  # fmt: skip
     except (WorldError, OutputError) as error:

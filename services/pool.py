@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import logging
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import zenoh
@@ -67,10 +68,13 @@ def worker_specs(
     zenoh_flags: list[str],
     inference: InferenceConfig = DEFAULT_INFERENCE,
     id_prefix: str = "pool",
+    settings: Sequence[str] = (),
 ) -> list[WorkerSpec]:
     """`replicas` predictor workers per member, restarted when they die; worker ids
-    `<id_prefix>-<member>-<replica>` (the supervisor probes their health under these)."""
-    flags = ("--threads", str(threads), *inference.flags(), *zenoh_flags)
+    `<id_prefix>-<member>-<replica>` (the supervisor probes their health under these).
+    `settings`: the run's `--set` items (`RunConfig.as_overrides`)."""
+    sets = [flag for item in settings for flag in ("--set", item)]
+    flags = ("--threads", str(threads), *inference.flags(), *sets, *zenoh_flags)
     specs = []
     for member in members:
         for replica in range(replicas):

@@ -5,20 +5,9 @@
         [--inference fused|plain] [--views 1|2]
         [--hang-after N] [--mode ...] [--connect ...] [--listen ...]
 
-The worker loads its member's weights, declares a queryable on
-`mapex/@v1/predict/<member>/<worker_id>` and then a liveliness token on
-`mapex/@v1/alive/predict/<member>/<worker_id>` (so a live token means the queryable is
-there). Planners send each query to one chosen worker, so replicas of a member share the
-load. Queries are answered one at a time on a serving thread (never on Zenoh's own threads,
-which a slow prediction would stall): a PredictReply, or an ErrorReply on the error channel
-for a malformed request; the worker never dies of a bad message. A request that waited in the
-queue longer than its budget (the planner has given up on it) is dropped, not computed. A
-health probe on `mapex/@v1/health/<member>/<worker_id>` is answered at once on Zenoh's thread
-with how long the current prediction has been running, so planners and the supervisor can
-tell a worker stuck in one (docs/design.md#reliability). `--hang-after N` is fault
-injection for tests and benchmarks: after N predictions the worker stops answering but keeps
-its session, token and health probe, as a deadlocked one would. SIGINT/SIGTERM undeclare
-everything, close the session and exit 0. Bad flags or missing weights: one line, exit 2.
+It answers `predict` queries one at a time on a serving thread and health probes at once;
+replicas of a member share the load. Keys and replies: docs/protocol.md; threads, fault
+injection and exits: docs/design.md#processes; health and benching: docs/design.md#reliability.
 """
 
 from __future__ import annotations
@@ -35,6 +24,7 @@ from pathlib import Path
 
 import zenoh
 
+from mapex.config import ConfigError
 from mapex.exit_codes import EXIT_USAGE
 from mapex.prediction.base import Predictor
 from mapex.prediction.config import (
@@ -45,7 +35,7 @@ from mapex.prediction.config import (
 )
 from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
 from services.codec import DEFAULT_SERVICES, Payload, ProtocolError, quantise_probability
-from services.config import ServicesConfig
+from services.config import RunConfig, ServicesConfig, add_run_config_argument
 from services.keys import (
     ID_MAX_CHARS,
     MEMBERS,
@@ -229,10 +219,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--threads",
         type=int,
-        default=DEFAULT_SERVICES.predictor_threads,
-        help="torch CPU threads (default: one, as several workers share the machine)",
+        default=None,
+        help="torch CPU threads (default: services.predictor_threads, one, as several "
+        "workers share the machine)",
     )
     add_inference_arguments(parser)
+    add_run_config_argument(parser)
     parser.add_argument(
         "--hang-after",
         type=int,
@@ -254,19 +246,23 @@ def run_cli(argv: list[str] | None = None) -> int:
     configure_logging(f"predictor[{args.member}/{worker_id}]")
     stop = stop_on_signals()
     try:
-        config = zenoh_config_from_args(args)
+        run_config = RunConfig().with_overrides(args.overrides)
+        services = run_config.services
+        log.info("%s", run_config.describe())
+        config = zenoh_config_from_args(args, services)
         answered = main(
             config,
             args.member,
             worker_id,
             args.weights_dir,
             args.device,
-            args.threads,
+            args.threads or services.predictor_threads,
             stop,
+            services,
             inference=inference_from_args(args),
             hang_after=args.hang_after,
         )
-    except (WeightsError, ZenohConfigError) as error:
+    except (WeightsError, ConfigError, ZenohConfigError) as error:
         log.error("%s", error)
         return EXIT_USAGE
     log.info("stopped after answering %d queries", answered)
@@ -279,7 +275,7 @@ def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace, work
         parser.error(f"--worker-id {worker_id!r} must match [a-z0-9_-]{{1,{ID_MAX_CHARS}}}")
     if not _DEVICE_PATTERN.fullmatch(args.device):
         parser.error(f"--device {args.device!r} must be cpu, cuda or cuda:N")
-    if args.threads < 1:
+    if args.threads is not None and args.threads < 1:
         parser.error(f"--threads must be at least 1, got {args.threads}")
     if args.hang_after is not None and args.hang_after < 0:
         parser.error(f"--hang-after must be at least 0, got {args.hang_after}")

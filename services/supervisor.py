@@ -3,13 +3,10 @@
 services.up runs the world, the predictor workers and the planners as children of one
 `Supervisor`. Each child gets a session (process group) of its own, so a terminal Ctrl-C
 reaches only the supervisor, which then stops the children itself: SIGTERM, a grace period,
-then SIGKILL of whatever is left and of its process group. Every output line of a child is
-forwarded to one log sink as it comes, prefixed with the child's name. Nothing watches in
-the background: the caller calls `poll()` in its own loop, which restarts the servers that
-crashed. Call a supervisor from one thread (the forwarding threads only write to the sink).
-
-`claim_hub` decides whether services.up serves the well-known hub endpoint itself or
-connects to the hub that already listens there.
+then SIGKILL of whatever is left and of its process group. Every output line of a child goes
+to one log sink, prefixed with its name. The caller calls `poll()` in its own loop, which
+restarts the servers that crashed; call a supervisor from one thread. `claim_hub` decides
+whether services.up serves the well-known hub endpoint itself or joins the hub there.
 """
 
 from __future__ import annotations

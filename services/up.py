@@ -1,26 +1,18 @@
 """`python -m services.up`: the whole distributed simulator on one machine, supervised.
 
-With no arguments it serves the Zenoh hub on tcp/127.0.0.1:7447 (a router-mode session; the
-children are its clients, see `services.pool`), spawns the world simulator
-(the embedded default world), one predictor worker per ensemble member (g, g1, g2, g3) and
-the planner, runs a 1000-step MapEx episode with a progress bar and writes the same results
-folder as `python -m mapex run` (results/<world>-<method>-start<i>-seed<s>).
-
-Every child's log lines are forwarded with its name; a predictor worker that dies is
-restarted (the planner goes on without that member meanwhile and the record notes the
-degraded re-plans), and so is one found stuck in a prediction (`services.health`); a world
-that exits, or any child that fails to start, ends the run at once with that child's own
-line; Ctrl-C stops every child within a few seconds. `--start` is a corner
-0-3 or a cell ROW,COL. `--runs N` runs N episodes at once (corner starts start, start+1, ...
-mod 4, or the one cell; seeds seed, seed+1, ...) sharing the one predictor pool;
-`--robots N` puts N robots in each world. With `--connect` (e.g. a router on another
-machine, see deploy/README.md) the hub is not served here and every child connects there;
-`--members none` spawns no worker and uses the workers already there.
+With no arguments it serves the Zenoh hub on tcp/127.0.0.1:7447, spawns the world (the
+embedded default world), one predictor worker per ensemble member and the planner, runs a
+1000-step MapEx episode with a progress bar and writes the results folder of `python -m
+mapex run`. It forwards the children's logs, restarts a dead or stuck worker, ends the run
+with the child's own line when a world exits or a child fails to start, and stops
+everything on Ctrl-C. The run's settings (defaults and `--set`) are built once and handed
+to every child. Flags: `--help`; deployment on several machines: deploy/README.md.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import os
 import secrets
@@ -32,31 +24,32 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from mapex.budget import add_budget_arguments, budget_overrides, resolve_steps
-from mapex.config import (
-    ConfigError,
-    ExplorationConfig,
-    add_override_argument,
-    apply_overrides,
-)
+from mapex.budget import add_budget_arguments, resolve_steps
+from mapex.config import ConfigError, ExplorationConfig
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
+from mapex.methods import METHODS
 from mapex.prediction.config import inference_from_args
 from mapex.results import DEFAULT_RESULTS_DIR, check_output_folder
-from mapex.team.methods import ALL_METHODS, TEAM_METHODS
 from mapex.team.starts import team_start_cells
-from mapex.worlds import DEFAULT_SPEC, StartSpec, World, WorldError, load_world
-from mapex.worlds.starts import add_start_argument, start_argument, start_cell
-from services.codec import DEFAULT_SERVICES
-from services.config import ServicesConfig
-from services.health import PoolWatch
-from services.keys import ID_MAX_CHARS, is_valid_id, robot_id
-from services.messages import PoseMessage
-from services.outside_tools import (
+from mapex.worlds import (
+    DEFAULT_SPEC,
+    StartSpec,
+    World,
+    WorldError,
+    load_world,
+    world_spec_help,
+)
+from mapex.worlds.starts import add_start_argument, start_argument
+from services.bridges.outside_tools import (
     OutsideTools,
     add_outside_tool_arguments,
     bridge_spec,
     check_outside_tool_arguments,
 )
+from services.config import RunConfig, add_run_config_argument
+from services.health import PoolWatch
+from services.keys import ID_MAX_CHARS, is_valid_id, robot_id
+from services.messages import PoseMessage
 from services.pool import RunProgress, add_pool_arguments, hub_session_config, worker_specs
 from services.serving import RUN_TOKEN_ENV, configure_logging, stop_on_signals
 from services.supervisor import ProcessSpec, Supervisor, describe_exit
@@ -85,72 +78,49 @@ class Run:
 
 
 def plan_runs(
-    args: argparse.Namespace,
-    world: World | None = None,
-    exploration: ExplorationConfig | None = None,
+    args: argparse.Namespace, world: World, exploration: ExplorationConfig | None = None
 ) -> list[Run]:
-    """The runs asked for: run k starts its robots at corners start + k, start + k + 1, ...
-    (mod 4), or with a cell start its one robot at that cell; a team (a team method, given
-    `world`) deploys around run k's start (`mapex.team.starts`)."""
+    """The runs asked for: run k starts at corner start + k (mod 4), or at the one cell; a
+    team of several deploys around that start (`mapex.team.starts`)."""
     prefix = args.run_prefix or f"up{os.getpid()}"
     runs = []
     for k in range(args.runs):
-        starts = _run_starts(args.start, k, args.robots)
-        if args.method in TEAM_METHODS and world is not None:
-            first = (args.start + k) % 4 if isinstance(args.start, int) else args.start
-            cells = team_start_cells(
-                world, [first], args.robots, exploration or ExplorationConfig()
-            )
-            starts = tuple(cells)
+        first = (args.start + k) % 4 if isinstance(args.start, int) else args.start
+        cells = team_start_cells(world, [first], args.robots, exploration or ExplorationConfig())
+        # a robot alone is named by its start as given (the corner), a team by its cells
+        starts: tuple[StartSpec, ...] = (first,) if args.robots == 1 else tuple(cells)
         runs.append(Run(f"{prefix}-{k}", starts, args.seed + k, secrets.token_hex(16)))
     return runs
 
 
-def _run_starts(start: StartSpec, run: int, robots: int) -> tuple[StartSpec, ...]:
-    if isinstance(start, int):
-        return tuple((start + run + i) % 4 for i in range(robots))
-    return (start,) * robots
-
-
-def child_specs(args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str]) -> dict:
-    """Process specs by role: 'workers', 'worlds', 'planners'."""
+def child_specs(
+    args: argparse.Namespace, runs: list[Run], zenoh_flags: list[str], run_config: RunConfig
+) -> dict:
+    """Process specs by role: 'workers', 'worlds', 'planners'; each child gets the run's
+    settings as the `--set` items that rebuild `run_config`."""
+    settings = run_config.as_overrides()
+    sets = [flag for item in settings for flag in ("--set", item)]
     workers = worker_specs(
         args.members, args.replicas, args.threads, zenoh_flags, inference_from_args(args),
-        id_prefix=f"up{os.getpid()}",
+        id_prefix=f"up{os.getpid()}", settings=settings,
     )  # fmt: skip
     worlds, planners = [], []
     for run in runs:
         starts = [start_argument(start) for start in run.starts]
         secret = {RUN_TOKEN_ENV: run.token}
-        worlds.append(
-            ProcessSpec(
-                f"world-{run.run_id}",
-                "services.world",
-                (
-                    "--run",
-                    run.run_id,
-                    "--world",
-                    args.world,
-                    "--robots",
-                    str(len(run.starts)),
-                    "--starts",
-                    *starts,
-                    *(["--team"] if args.method in TEAM_METHODS else []),
-                    *zenoh_flags,
-                ),
-                env=secret,
-            )  # fmt: skip
-        )
+        world_args = (
+            "--run", run.run_id, "--world", args.world, "--robots", str(len(run.starts)),
+            "--starts", *starts, *sets, *zenoh_flags,
+        )  # fmt: skip
+        worlds.append(ProcessSpec(f"world-{run.run_id}", "services.world", world_args, env=secret))
         for robot in range(len(run.starts)):
             planner_args = [
                 "--run", run.run_id, "--robot", str(robot), "--method", args.method,
-                "--steps", str(args.steps), "--seed", str(run.seed), "--no-progress",
-                "--start", starts[robot],
+                "--steps", str(run_config.exploration.steps), "--seed", str(run.seed),
+                "--no-progress", "--start", starts[robot], *sets,
             ]  # fmt: skip
             if args.out is not None:
                 planner_args += ["--out", str(args.out / f"{run.run_id}-{robot_id(robot)}")]
-            for override in [*budget_overrides(args), *args.overrides]:
-                planner_args += ["--set", override]
             planners.append(
                 ProcessSpec(
                     f"planner-{run.run_id}-{robot_id(robot)}",
@@ -208,18 +178,21 @@ def supervise(
     return EXIT_FAILED if failed else 0
 
 
-def main(args: argparse.Namespace, services: ServicesConfig = DEFAULT_SERVICES) -> int:
+def main(args: argparse.Namespace) -> int:
     """Spawn, supervise and stop everything; the exit code of the run."""
-    # A bad world, start or override fails here in one line, before any process starts.
-    exploration = apply_overrides(ExplorationConfig(until_iou=args.until_iou), args.overrides)
+    # A bad world, start or setting fails here in one line, before any process starts.
+    run_config = RunConfig(ExplorationConfig(until_iou=args.until_iou))
+    run_config = run_config.with_overrides(args.overrides)
+    exploration, services = run_config.exploration, run_config.services
     world = load_world(args.world).check_size(exploration.world.max_cells)
     args.steps = resolve_steps(args.steps, world)
-    start_cell(world, args.start, exploration.world.start_clearance_cells)
+    exploration = dataclasses.replace(exploration, steps=args.steps)
+    run_config = dataclasses.replace(run_config, exploration=exploration)
+    runs = plan_runs(args, world, exploration)
     check_output_folder(args.out or DEFAULT_RESULTS_DIR)
     check_outside_tool_arguments(args)
-    runs = plan_runs(args, world, exploration)
     own_config, zenoh_flags = hub_session_config(args, services)
-    specs = child_specs(args, runs, zenoh_flags)
+    specs = child_specs(args, runs, zenoh_flags, run_config)
     specs["tools"] = bridge_spec(args, zenoh_flags)
     stop = stop_on_signals()
     session = open_session(own_config)
@@ -270,27 +243,28 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m services.up",
         description=__doc__.split("\n\n")[1].replace("\n", " "),
     )
-    parser.add_argument("--world", default=DEFAULT_SPEC, help="'default', 'generated:SEED', "
-                        "'generated-open:SEED' or a KTH map directory "
-                        "(default: %(default)s)")  # fmt: skip
+    parser.add_argument("--world", default=DEFAULT_SPEC,
+                        help=f"the world: {world_spec_help()} (default: %(default)s)")  # fmt: skip
     parser.add_argument(
         "--method",
         default="mapex",
-        choices=ALL_METHODS,
-        help="a team method (mapex_team, ...) makes the --robots of a world one team sharing "
-        "a map, deployed about 1 m apart around the start",
+        choices=list(METHODS),
+        help="default: %(default)s; the --robots of a run share one map, deployed about 1 m "
+        "apart around the start",
     )
     add_budget_arguments(parser)
     add_start_argument(parser, 0, "start pose of the first run (default 0)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first run (default 0)")
-    parser.add_argument("--robots", type=int, default=1, help="robots per world (default 1)")
+    parser.add_argument(
+        "--robots", type=int, default=1, help="robots of each run, one team (default 1)"
+    )
     parser.add_argument("--runs", type=int, default=1, help="episodes run at once (default 1)")
     add_pool_arguments(parser)
     parser.add_argument(
         "--out", type=Path, default=None, help="results parent folder (default: as mapex run)"
     )
     parser.add_argument("--run-prefix", default=None, help="run ids are <prefix>-<k>")
-    add_override_argument(parser)
+    add_run_config_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     add_outside_tool_arguments(parser)
     add_zenoh_arguments(parser, HUB_HELP)
@@ -303,8 +277,6 @@ def run_cli(argv: list[str] | None = None) -> int:
     for flag in ("robots", "runs", "replicas", "threads"):
         if getattr(args, flag) < 1:
             parser.error(f"--{flag} must be at least 1")
-    if not isinstance(args.start, int) and args.robots > 1 and args.method not in TEAM_METHODS:
-        parser.error("a cell --start places one robot: use corner starts with --robots")
     if args.run_prefix is not None and not (
         is_valid_id(args.run_prefix) and len(args.run_prefix) <= RUN_PREFIX_MAX_CHARS
     ):

@@ -1,24 +1,11 @@
-"""The world simulator: owns the ground truth and the robots, answers step queries with scans.
+"""The world simulator: owns the ground truth and the robots, and is their clock.
 
-    python -m services.world --run RUN_ID [--world default|generated:SEED|KTH_DIR]
-        [--robots 1] [--starts 0 [1|ROW,COL ...]] [--mode ...] [--connect ...] [--listen ...]
-
-Robot i of the run is `r<i>` on the wire and starts at `--starts[i]`: a corner 0-3 of the
-valid space (`mapex.worlds.start_poses`) or an explicit cell ROW,COL. The process declares,
-for each robot, a queryable on `mapex/@v1/<run>/<robot>/step` that answers a StepRequest with
-the ScanReply taken after the motion (or an ErrorReply saying why it refused), and publishes
-after each step the robot's PoseMessage on `pose` and the ScanReply on `scan`. WorldInfo and
-GroundTruth are published once at start on `mapex/@v1/<run>/world_info` and `.../ground_truth`
-and served on the same keys, so a late joiner gets them with a `get`. Then it declares the
-liveliness token `mapex/@v1/alive/world/<run>` (a live token means every queryable is there).
-
-Steps carry a per-robot sequence number (StepRequest.seq): a repeat of the last one served gets
-the cached reply without moving the robot, so a planner may retry a query whose reply was lost.
-With a run token in the environment (`MAPEX_RUN_TOKEN`, which services.up sets for the world
-and the planners of each run it starts), a step that does not carry that token is refused: a
-stray client that can reach the hub cannot move a robot (docs/design.md#trust).
-Queries are answered on serving threads, never on Zenoh's own. SIGINT/SIGTERM undeclare
-everything, close the session and exit 0. Bad world, starts or flags: one line, exit 2.
+Every run is a team of N >= 1 robots (docs/algorithms.md#teams): the world answers the
+step queries of the robots' planners in lockstep, one step for all, and every planner gets
+every robot's scan and the claims made at that step. It publishes each robot's pose and
+scan, and its world_info and ground truth (also served to late joiners). Keys, messages,
+sequence numbers, retries and the run token: docs/protocol.md. Bad world, starts or
+flags: one line, exit 2; SIGINT/SIGTERM: a clean stop, exit 0.
 """
 
 from __future__ import annotations
@@ -29,32 +16,48 @@ import logging
 import queue
 import sys
 import threading
+import time
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 
+import numpy as np
 import zenoh
 
-from mapex.config import ExplorationConfig, argparse_type
+from mapex.config import ConfigError, ExplorationConfig, argparse_type
 from mapex.exit_codes import EXIT_USAGE
 from mapex.simulator import MotionError, Simulator
-from mapex.worlds import DEFAULT_SPEC, StartSpec, World, WorldError, load_world
+from mapex.worlds import (
+    DEFAULT_SPEC,
+    StartSpec,
+    World,
+    WorldError,
+    load_world,
+    world_spec_help,
+)
 from mapex.worlds.starts import parse_start, start_cell
 from services.codec import DEFAULT_SERVICES, Payload, ProtocolError
-from services.config import ServicesConfig
+from services.config import RunConfig, ServicesConfig, add_run_config_argument
 from services.keys import (
+    ROBOT_ID_PREFIX,
+    AliveKey,
+    alive_planner_pattern,
     alive_world_key,
+    parse_key,
     robot_id,
     robot_key,
     run_id_problem,
     run_key,
 )
 from services.messages import (
+    CLAIM_MADE,
+    CLAIM_WITHDRAWN,
     ErrorReply,
     GroundTruth,
     Message,
     PoseMessage,
     ScanReply,
+    StepReply,
     StepRequest,
-    TeamStepRequest,
     WorldInfo,
 )
 from services.serving import (
@@ -74,6 +77,8 @@ from services.zenoh_config import (
 )
 
 DEFAULT_EXPLORATION = ExplorationConfig()
+DEFAULT_RUN_CONFIG = RunConfig()
+KEPT_REPLIES = 4  # steps whose reply is kept for late requests and retries
 
 log = logging.getLogger("services.world")
 
@@ -86,12 +91,18 @@ class StartError(ValueError):
 
 
 class WorldServer:
-    """Turns step payloads into scans for the robots of one world; knows nothing of Zenoh.
+    """The robots of one world, stepped in lockstep; knows nothing of Zenoh.
 
-    Robot i starts at `starts[i]` (a corner 0-3 or a cell). `answer_step` never raises on
-    bad input; it serialises steps, so serving threads of several robots may call it at once.
-    `on_step` (settable) hears of every fresh step, e.g. to publish it. With a `run_token`,
-    steps that do not carry it are refused before anything else is looked at.
+    Robot i starts at `starts[i]` (a corner 0-3 or a cell). A `step_request` of seq s waits
+    until every robot's request of seq s is in (or `services.team_step_wait_s` has passed
+    since the first arrived: a late robot stands still for that step); then every robot
+    moves and every request gets the same `StepReply`. A request for a recent seq (a retry,
+    or a robot that was late) gets that step's reply again; its motion is not applied. A
+    robot whose planner is gone is not waited for and its claim is withdrawn. The reply says
+    `finished` (nobody moves) when every robot left has nothing left to explore.
+    `answer_step` never raises on bad input and may be called from several threads at once;
+    `on_step` (settable) hears of every robot's fresh scan. With a `run_token`, requests that
+    do not carry it are refused before anything else is looked at.
     """
 
     def __init__(
@@ -101,6 +112,7 @@ class WorldServer:
         config: ExplorationConfig = DEFAULT_EXPLORATION,
         on_step: StepListener | None = None,
         run_token: str | None = None,
+        services: ServicesConfig = DEFAULT_SERVICES,
     ) -> None:
         if not starts:
             raise StartError("a world needs at least one robot")
@@ -110,73 +122,172 @@ class WorldServer:
         except WorldError as error:
             raise StartError(str(error)) from None
         self.world = world
+        self.config = config
         self.simulator = Simulator(world, self.starts, config.sensor, config.motion)
         self.on_step = on_step
         self.run_token = run_token
-        self.served = 0  # fresh steps served, all robots together
-        self._last_seq: list[int | None] = [None] * len(self.starts)
-        self._last_reply: list[ScanReply | None] = [None] * len(self.starts)
-        self._lock = threading.Lock()
+        self.services = services
+        self.served = 0  # robot scans taken, all robots together
+        self.seq = 0  # the step being collected (0: the initial scans)
+        self.lost: set[int] = set()
+        self.finished = False  # a step reply said so: every robot left was done
+        self._requests: dict[int, StepRequest] = {}
+        self._first_arrival: float | None = None
+        self._replies: OrderedDict[int, StepReply] = OrderedDict()
+        self._clock = threading.Condition()
+        self._announced: set[int] = set()  # lost robots whose claim was withdrawn
 
     @property
     def n_robots(self) -> int:
         return len(self.starts)
 
     def world_info(self) -> WorldInfo:
-        """Name, shape, cell size and the start cells of this server's robots."""
-        world = self.world
-        return WorldInfo(world.name, world.shape, world.resolution_m, self.starts)
+        """Name, shape, cell size, the robots' start cells, and the sensor and motion
+        settings every planner of the run must share."""
+        world, config = self.world, self.config
+        return WorldInfo(
+            world.name, world.shape, world.resolution_m, self.starts,
+            config.sensor.n_rays, config.sensor.range_cells, config.motion.cells_per_step,
+        )  # fmt: skip
 
     def ground_truth(self) -> GroundTruth:
         """The walls and valid space of the world."""
         return GroundTruth.from_world(self.world)
 
-    request_type: type[StepRequest | TeamStepRequest] = StepRequest  # what a step query holds
-    request_name = "step request"  # in refusals
-
     def answer_step(self, robot: int, payload: Payload | None) -> Message:
-        """The reply to a valid step payload of robot `robot` (`_answer`), else an ErrorReply."""
+        """The reply to a valid step payload of robot `robot`, else an ErrorReply."""
         try:
             if not 0 <= robot < self.n_robots:
                 raise ProtocolError(f"robot {robot} is not one of 0-{self.n_robots - 1}")
             if payload is None:
                 raise ProtocolError("the query carries no payload")
-            request = self.request_type.decode(payload)
+            request = StepRequest.decode(payload)
         except ProtocolError as error:
-            log.warning("refused a malformed %s: %s", self.request_name, error)
-            return ErrorReply(f"malformed {self.request_name}: {error}")
+            log.warning("refused a malformed step request: %s", error)
+            return ErrorReply(f"malformed step request: {error}")
         if not self._authorised(request):
             return self._refuse(robot, f"step seq {request.seq} without this run's token")
-        return self._answer(robot, request)
+        with self._clock:
+            return self._wait_for_step(robot, request)
 
-    def _answer(self, robot: int, request: StepRequest) -> ScanReply | ErrorReply:
-        with self._lock:
-            return self._step(robot, request)
+    def watch_planners(self, session: zenoh.Session, run: str) -> zenoh.LivelinessSubscriber:
+        """Mark a robot lost when its planner's liveliness token goes (undeclare the
+        returned subscriber when done)."""
+        return session.liveliness().declare_subscriber(
+            alive_planner_pattern(run), self._on_planner_token, history=True
+        )
 
-    def _step(self, robot: int, request: StepRequest) -> ScanReply | ErrorReply:
-        last = self._last_seq[robot]
-        if last is not None and request.seq == last:
-            return self._last_reply[robot]  # a retry: same reply, no motion
-        expected = 0 if last is None else last + 1
-        if request.seq != expected:
-            return self._refuse(
-                robot, f"step seq {request.seq} is out of order, expected {expected}"
-            )
+    def planner_gone(self, robot: int) -> None:
+        """Robot `robot`'s planner is gone: stop waiting for it."""
+        with self._clock:
+            if robot not in self.lost:
+                # a planner leaves after the budget's last step, or when G's IoU reached the
+                # level (the world does not see that): only an earlier exit is a loss
+                budget = self.config.steps
+                ended = self.seq > budget or self.finished or self.config.until_iou is not None
+                level = logging.INFO if ended else logging.WARNING
+                log.log(level, "robot %s is lost: its planner is gone", robot_id(robot))
+                self.lost.add(robot)
+                self._clock.notify_all()
+
+    def _on_planner_token(self, sample: zenoh.Sample) -> None:
         try:
-            reply = ScanReply.from_scan(self.simulator.step(robot, request.cells))
+            key = parse_key(str(sample.key_expr))
+        except ProtocolError as error:
+            log.warning("ignored a planner token: %s", error)
+            return
+        robot = _robot_index(key.robot) if isinstance(key, AliveKey) else None
+        gone = sample.kind == zenoh.SampleKind.DELETE
+        if gone and robot is not None and 0 <= robot < self.n_robots:
+            self.planner_gone(robot)
+
+    def _wait_for_step(self, robot: int, request: StepRequest) -> StepReply | ErrorReply:
+        if request.seq in self._replies:  # a retry, or a robot that was late
+            return self._replies[request.seq]
+        if request.seq != self.seq:
+            return self._refuse(robot, f"step seq {request.seq} is out of order, at {self.seq}")
+        self._requests[robot] = request
+        if self._first_arrival is None:
+            self._first_arrival = time.monotonic()
+        deadline = self._first_arrival + self.services.team_step_wait_s
+        while request.seq not in self._replies:
+            remaining = deadline - time.monotonic()
+            awaited = set(range(self.n_robots)) - self.lost
+            if awaited <= self._requests.keys() or remaining <= 0:
+                self._serve()
+            else:
+                self._clock.wait(remaining)
+        return self._replies[request.seq]
+
+    def _serve(self) -> None:
+        """Move every robot (late ones stand still), then publish and cache the reply."""
+        seq, requests = self.seq, self._requests
+        late = [robot for robot in range(self.n_robots) if robot not in requests]
+        slow = [robot for robot in late if robot not in self.lost]
+        if slow:
+            names = ", ".join(robot_id(robot) for robot in slow)
+            log.warning("step %d: no request from %s in time: standing still", seq, names)
+        finished = seq > 0 and not slow and all(r.done for r in requests.values())
+        self.finished = self.finished or finished
+        scans = []
+        if not finished:
+            scans = [self._move(robot, seq, requests.get(robot)) for robot in range(self.n_robots)]
+        self._replies[seq] = self._team_reply(seq, finished, scans, requests, late)
+        while len(self._replies) > KEPT_REPLIES:
+            self._replies.popitem(last=False)
+        self.seq, self._requests, self._first_arrival = seq + 1, {}, None
+        self._clock.notify_all()
+
+    def _move(self, robot: int, seq: int, request: StepRequest | None) -> ScanReply:
+        cells = np.zeros((0, 2), dtype=np.int32) if request is None else request.cells
+        try:
+            scan = self.simulator.step(robot, cells)
         except MotionError as error:
-            return self._refuse(robot, f"refused motion: {error}")
-        self._last_seq[robot], self._last_reply[robot] = request.seq, reply
+            log.warning("robot %s: refused motion of step %d: %s", robot_id(robot), seq, error)
+            scan = self.simulator.scan(robot)
+        reply = ScanReply.from_scan(scan)
         self.served += 1
         if self.on_step is not None:
-            self.on_step(robot, request.seq, reply)
+            self.on_step(robot, seq, reply)
         return reply
 
-    def watch_planners(self, session: zenoh.Session, run: str) -> zenoh.LivelinessSubscriber | None:
-        """Follow the planners' liveliness (a team world does; one robot's does not)."""
-        return None
+    def _team_reply(
+        self,
+        seq: int,
+        finished: bool,
+        scans: list[ScanReply],
+        requests: dict[int, StepRequest],
+        late: list[int],
+    ) -> StepReply:
+        n, shape, rays = self.n_robots, self.world.shape, self.simulator.sensor.n_rays
+        state = np.zeros(n, dtype=np.uint8)
+        goals = np.zeros((n, 2), dtype=np.int32)
+        scores = np.zeros(n, dtype=np.float64)
+        for robot, request in requests.items():
+            if not request.claimed:
+                continue
+            state[robot] = CLAIM_WITHDRAWN if request.claim_goal is None else CLAIM_MADE
+            if request.claim_goal is not None:
+                goals[robot], scores[robot] = request.claim_goal, request.claim_score
+        for robot in sorted(self.lost - self._announced):  # its claim expires
+            state[robot] = CLAIM_WITHDRAWN
+            self._announced.add(robot)
+        made = np.flatnonzero(state == CLAIM_MADE)  # the claimed cells of each, robot order
+        visible = np.array([requests[r].claim_visible for r in made], dtype=bool)
+        stood = np.zeros(n, dtype=bool)
+        stood[late] = True
+        lost = np.zeros(n, dtype=bool)
+        lost[sorted(self.lost)] = True
+        return StepReply(
+            seq, finished,
+            np.array([s.pose for s in scans], dtype=np.int32).reshape(-1, 2),
+            np.array([s.n_cells for s in scans], dtype=np.uint16).reshape(len(scans), rays),
+            np.array([s.hit for s in scans], dtype=bool).reshape(len(scans), rays),
+            stood, state, goals, scores,
+            visible.reshape(len(made), *shape), lost,
+        )  # fmt: skip
 
-    def _authorised(self, request: StepRequest | TeamStepRequest) -> bool:
+    def _authorised(self, request: StepRequest) -> bool:
         if self.run_token is None:
             return True
         return hmac.compare_digest((request.run_token or "").encode(), self.run_token.encode())
@@ -184,6 +295,13 @@ class WorldServer:
     def _refuse(self, robot: int, why: str) -> ErrorReply:
         log.warning("robot %s: %s", robot_id(robot), why)
         return ErrorReply(f"robot {robot_id(robot)}: {why}")
+
+
+def _robot_index(robot: str | None) -> int | None:
+    """The index of robot id `r<k>`, or None."""
+    if robot is None or not robot.startswith(ROBOT_ID_PREFIX) or not robot[1:].isdigit():
+        return None
+    return int(robot[1:])
 
 
 def serve(
@@ -216,8 +334,7 @@ def serve(
         wait_for(stop)
     finally:
         token.undeclare()
-        if watcher is not None:
-            watcher.undeclare()
+        watcher.undeclare()
         servers.close(services.world_drain_s)
         step_publisher.close()
         for publisher in publishers.values():
@@ -274,44 +391,39 @@ def main(
     run: str,
     starts: Sequence[StartSpec],
     stop: threading.Event | None = None,
-    exploration: ExplorationConfig = DEFAULT_EXPLORATION,
-    services: ServicesConfig = DEFAULT_SERVICES,
+    run_config: RunConfig = DEFAULT_RUN_CONFIG,
     run_token: str | None = None,
-    team: bool = False,
 ) -> int:
     """Serve `world` for `run` with robots at `starts` (corners or cells) until `stop` is set.
 
-    Returns the steps served. Raises StartError or WorldError (bad starts, no start pose) before
-    any network set-up, and ZenohConfigError when the session is refused. With `run_token`
-    only steps carrying it move a robot. With `team` the robots are one team moved in
-    lockstep (`services.team_world`).
+    Returns the robot scans served. Raises StartError or WorldError (bad starts, no start
+    pose) before any network set-up, and ZenohConfigError when the session is refused. With
+    `run_token` only steps carrying it move a robot.
     """
-    if team:
-        from services.team_world import TeamWorldServer
-
-        server = TeamWorldServer(world, starts, exploration, run_token=run_token, services=services)
-    else:
-        server = WorldServer(world, starts, exploration, run_token=run_token)
+    server = WorldServer(
+        world, starts, run_config.exploration, run_token=run_token, services=run_config.services
+    )
     session = open_session(config)
     try:
-        return serve(session, server, run, stop or threading.Event(), services)
+        return serve(session, server, run, stop or threading.Event(), run_config.services)
     finally:
         session.close()
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The command-line flags: world, run, robots, starts and Zenoh's."""
+    """The command-line flags: world, run, robots, starts, settings and Zenoh's."""
     parser = argparse.ArgumentParser(
         prog="python -m services.world", description=__doc__.splitlines()[0]
     )
     parser.add_argument(
         "--world",
         default=DEFAULT_SPEC,
-        help="'default', 'generated:<seed>', 'generated-open:<seed>' or a KTH map directory "
-        "(default: %(default)s)",
+        help=f"the world: {world_spec_help()} (default: %(default)s)",
     )
     parser.add_argument("--run", required=True, help="run id, the <run> chunk of the keys")
-    parser.add_argument("--robots", type=int, default=1, help="number of robots (default: 1)")
+    parser.add_argument(
+        "--robots", type=int, default=1, help="robots of the run, one team (default: 1)"
+    )
     parser.add_argument(
         "--starts",
         type=argparse_type(parse_start),
@@ -320,12 +432,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="CORNER|ROW,COL",
         help="each robot's start: a corner 0-3 or a cell ROW,COL (default: 0 1 ... per robot)",
     )
-    parser.add_argument(
-        "--team",
-        action="store_true",
-        help="the robots are one team sharing a map: steps in lockstep, every planner gets "
-        "every robot's scan and claims (team_step_request / team_scan_reply)",
-    )
+    add_run_config_argument(parser)
     add_zenoh_arguments(parser)
     return parser
 
@@ -339,16 +446,18 @@ def run_cli(argv: list[str] | None = None) -> int:
     configure_logging(f"world[{args.run}]")
     stop = stop_on_signals()
     try:
-        config = zenoh_config_from_args(args)
+        run_config = RunConfig().with_overrides(args.overrides)
+        config = zenoh_config_from_args(args, run_config.services)
         world = load_world(args.world)
         token = run_token_from_env()
         if token is None:
             log.warning("no %s set: any client that reaches the hub may step", RUN_TOKEN_ENV)
-        served = main(config, world, args.run, starts, stop, run_token=token, team=args.team)
-    except (WorldError, StartError, ZenohConfigError) as error:
+        log.info("%s", run_config.describe())
+        served = main(config, world, args.run, starts, stop, run_config, token)
+    except (WorldError, StartError, ConfigError, ZenohConfigError) as error:
         log.error("%s", error)
         return EXIT_USAGE
-    log.info("stopped after serving %d steps", served)
+    log.info("stopped after serving %d scans", served)
     return 0
 
 

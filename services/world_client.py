@@ -2,8 +2,9 @@
 
 A step is a query on `mapex/@v1/<run>/<robot>/step` carrying the robot's sequence number;
 a query that gets no reply is sent again with the same number (the world answers a repeat
-with its cached reply and does not move the robot twice). The world's name, size and ground
-truth come from its `world_info` and `ground_truth` queryables, asked until they answer.
+with its cached reply and does not move the robot twice). The world's name, size, settings
+and ground truth come from its `world_info` and `ground_truth` queryables, asked until they
+answer (docs/protocol.md).
 """
 
 from __future__ import annotations
@@ -14,9 +15,10 @@ import time
 import numpy as np
 import zenoh
 
+from mapex.episode import WorldStep
+from mapex.methods.claims import Claim
 from mapex.sensor import Scan
-from mapex.team.claims import Claim
-from mapex.team.episode import Decision, TeamStep
+from mapex.team.team import Decision
 from mapex.worlds.base import World
 from services.codec import DEFAULT_SERVICES, ProtocolError
 from services.config import ServicesConfig
@@ -27,10 +29,8 @@ from services.messages import (
     ErrorReply,
     GroundTruth,
     Message,
-    ScanReply,
+    StepReply,
     StepRequest,
-    TeamScanReply,
-    TeamStepRequest,
     WorldInfo,
     decode_message,
 )
@@ -49,20 +49,24 @@ class StepRefusedError(RuntimeError):
 
 
 class ZenohWorld:
-    """Robots of one run, moved and scanned by the world process reachable through `session`."""
+    """Robot `robot` of a run, moved and scanned by the world process reachable through
+    `session`: it sends this robot's decision of each step and gets every robot's scan and
+    the claims made at it back."""
 
     def __init__(
         self,
         session: zenoh.Session,
         run: str,
+        robot: int,
         services: ServicesConfig = DEFAULT_SERVICES,
         run_token: str | None = None,
     ) -> None:
         self.session = session
         self.run = run
+        self.robot = robot
         self.services = services
         self.run_token = run_token  # carried by every step (the world may require it)
-        self._next_seq: dict[int, int] = {}
+        self.key = robot_key(run, robot_id(robot), "step")
 
     def fetch(self, timeout_s: float | None = None) -> tuple[WorldInfo, World]:
         """The world's info and its ground truth as a `World`, waiting for the world to serve."""
@@ -76,22 +80,28 @@ class ZenohWorld:
             )
         return info, truth.to_world(info.name, info.resolution_m)
 
-    def scan(self, robot: int) -> Scan:
-        """The initial scan of robot `robot` where it stands (step seq 0)."""
-        self._next_seq[robot] = 0
-        return self._step(robot, np.zeros((0, 2), dtype=np.int32))
+    def initial(self) -> list[Scan]:
+        """Every robot's scan where it stands (seq 0)."""
+        return self._step(0, Decision(self.robot, np.zeros((0, 2), dtype=np.int32))).scans
 
-    def step(self, robot: int, cells: np.ndarray) -> Scan:
-        """Drive robot `robot` through `cells` and return the scan at its new pose."""
-        return self._step(robot, np.asarray(cells, dtype=np.int32).reshape(-1, 2))
+    def step(self, t: int, decisions: list[Decision]) -> WorldStep:
+        """Send this robot's decision of step t; the team's scans and claims of it."""
+        (mine,) = [d for d in decisions if d.robot == self.robot]
+        return self._step(t + 1, mine)
 
-    def _step(self, robot: int, cells: np.ndarray) -> Scan:
-        seq = self._next_seq.get(robot, 0)
-        key = robot_key(self.run, robot_id(robot), "step")
-        payload = StepRequest(seq, cells, self.run_token).encode(self.services)
-        message = self._request(key, payload, seq, ScanReply, self.services.step_timeout_s)
-        self._next_seq[robot] = seq + 1
-        return message.to_scan()
+    def _step(self, seq: int, decision: Decision) -> WorldStep:
+        claim = decision.claim
+        motion = np.zeros((0, 2)) if decision.motion is None else decision.motion
+        cells = np.asarray(motion, dtype=np.int32).reshape(-1, 2)
+        done = decision.motion is None and seq > 0  # seq 0 asks for the initial scans
+        request = StepRequest(
+            seq, cells, done, decision.claimed, None if claim is None else claim.goal,
+            None if claim is None else claim.score, None if claim is None else claim.visible,
+            self.run_token,
+        )  # fmt: skip
+        wait_s = self.services.step_timeout_s + self.services.team_step_wait_s
+        reply = self._request(self.key, request.encode(self.services), seq, StepReply, wait_s)
+        return _world_step_of(reply, max(seq - 1, 0))
 
     def _request(
         self, key: str, payload: bytes, seq: int, kind: type[Message], timeout_s: float
@@ -142,50 +152,8 @@ class ZenohWorld:
         return None
 
 
-class ZenohTeamWorld(ZenohWorld):
-    """A `mapex.team.episode.TeamStepSource` for robot `robot` of a team world process: it
-    sends this robot's decision of each step and gets every robot's scan and claims back."""
-
-    def __init__(
-        self,
-        session: zenoh.Session,
-        run: str,
-        robot: int,
-        shape: tuple[int, int],
-        services: ServicesConfig = DEFAULT_SERVICES,
-        run_token: str | None = None,
-    ) -> None:
-        super().__init__(session, run, services, run_token)
-        self.robot = robot
-        self.shape = shape
-        self.key = robot_key(run, robot_id(robot), "step")
-
-    def initial(self) -> list[Scan]:
-        """Every robot's scan where it stands (seq 0)."""
-        return self._team_step(0, Decision(self.robot, np.zeros((0, 2), dtype=np.int32))).scans
-
-    def step(self, t: int, decisions: list[Decision]) -> TeamStep:
-        """Send this robot's decision of step t; the team's scans and claims of it."""
-        (mine,) = [d for d in decisions if d.robot == self.robot]
-        return self._team_step(t + 1, mine)
-
-    def _team_step(self, seq: int, decision: Decision) -> TeamStep:
-        claim = decision.claim
-        motion = np.zeros((0, 2)) if decision.motion is None else decision.motion
-        cells = np.asarray(motion, dtype=np.int32).reshape(-1, 2)
-        done = decision.motion is None and seq > 0  # seq 0 asks for the initial scans
-        request = TeamStepRequest(
-            seq, cells, done, decision.claimed, None if claim is None else claim.goal,
-            None if claim is None else claim.score, None if claim is None else claim.visible,
-            self.run_token,
-        )  # fmt: skip
-        wait_s = self.services.step_timeout_s + self.services.team_step_wait_s
-        reply = self._request(self.key, request.encode(self.services), seq, TeamScanReply, wait_s)
-        return _team_step_of(reply, max(seq - 1, 0))
-
-
-def _team_step_of(reply: TeamScanReply, t: int) -> TeamStep:
-    """The `TeamStep` a team reply carries (claims made at step t)."""
+def _world_step_of(reply: StepReply, t: int) -> WorldStep:
+    """The `WorldStep` a step reply carries (claims made at step t)."""
     scans = [
         Scan((int(pose[0]), int(pose[1])), n_cells.copy(), hit.copy())
         for pose, n_cells, hit in zip(reply.poses, reply.n_cells, reply.hit, strict=True)
@@ -199,4 +167,4 @@ def _team_step_of(reply: TeamScanReply, t: int) -> TeamStep:
             score, visible = float(reply.claim_scores[robot]), reply.visible_of(robot).copy()
             claims[robot] = Claim(robot, t, goal, score, visible)
     lost = tuple(int(robot) for robot in np.flatnonzero(reply.lost))
-    return TeamStep(scans, claims, reply.finished, lost)
+    return WorldStep(scans, claims, reply.finished, lost)

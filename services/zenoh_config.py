@@ -1,21 +1,10 @@
 """The standard Zenoh flags of every service, turned into a `zenoh.Config`, and session opening.
 
-Default topology (no flags, one machine; no router, no multicast, loopback only):
-
-* every process is a *peer* that listens on an ephemeral loopback port
-  (`ServicesConfig.ephemeral_listen_endpoint`, tcp/127.0.0.1:0) and connects to the
-  well-known hub endpoint `ServicesConfig.hub_endpoint` (tcp/127.0.0.1:7447);
-* `python -m services.up` serves the hub: its own session listens on the hub endpoint
-  (`zenoh_config(listen=[hub])`; a session listening there does not connect to it);
-* gossip (single hop) tells the peers that met at the hub each other's loopback endpoints,
-  so they link up directly and data does not detour through the hub.
-
-A process started alone (no `services.up`) waits for the hub in the background; give one
-process `--listen tcp/127.0.0.1:7447` to make it the hub instead. `--mode router` with no
-`--listen` serves the hub as a Zenoh router (the stand-in for `zenohd`); on several machines
-processes use `--mode client --connect tcp/<router-host>:7447` (see deploy/). With
-`--config FILE` the file is the whole base configuration and only the flags given on the
-command line override it. Never fork after opening a session: spawn processes instead.
+With no flags every process is a peer on an ephemeral loopback port that connects to the
+well-known hub endpoint (`ServicesConfig.hub_endpoint`, tcp/127.0.0.1:7447), which
+`python -m services.up` serves: no router, no multicast, loopback only. `--mode`,
+`--connect`, `--listen` and `--config FILE` change that. The topology and its rules:
+docs/design.md#zenoh-sessions. Never fork after opening a session: spawn processes instead.
 """
 
 from __future__ import annotations

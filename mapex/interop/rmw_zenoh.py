@@ -1,22 +1,10 @@
 """What ROS 2's Zenoh middleware (rmw_zenoh, Jazzy >= 0.2.4, Kilted, Rolling) expects on the
 wire, as strings and bytes: data keys, liveliness tokens, QoS text and sample attachments.
 
-From ros2/rmw_zenoh's docs/design.md and rmw_zenoh_cpp/src/detail (liveliness_utils.cpp,
-attachment_helpers.cpp, qos.cpp):
-
-* data key: `<domain>/<topic without its leading slash>/<DDS type>/<RIHS01 hash>`, the DDS
-  type being `pkg::msg::dds_::Name_`; subscribers use that exact key;
-* liveliness tokens (what `ros2 node list` / `ros2 topic list` read, via a liveliness query
-  on `@ros2_lv/<domain>/**`): `@ros2_lv/<domain>/<zid>/<nid>/<id>/<kind>/<enclave>/
-  <namespace>/<node>[/<topic>/<type>/<hash>/<qos>]`, every `/` inside a field replaced by
-  `%`, an unset enclave or namespace written `%`;
-* QoS text `R:D:H,depth:DLs,DLns:LSs,LSns:LV,LVs,LVns`, a field equal to rmw_zenoh's default
-  (reliable, volatile, keep last 42, infinite durations, automatic liveliness) left empty;
-* every sample carries a 33-byte attachment: int64 sequence number, int64 source time (ns
-  since the epoch), both little-endian, the byte 16 (the gid's length) and a 16-byte
-  publisher gid; subscribers drop samples without it.
-
-Pure functions, no Zenoh session; `services.ros2` declares and publishes with them.
+Taken from ros2/rmw_zenoh's docs/design.md and rmw_zenoh_cpp/src/detail
+(liveliness_utils.cpp, attachment_helpers.cpp, qos.cpp); each format is spelled out in
+docs/interop.md#the-ros-2-bridge-servicesbridgesros2. Pure functions, no Zenoh session;
+`services.ros2` declares and publishes with them.
 """
 
 from __future__ import annotations

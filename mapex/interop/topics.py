@@ -1,19 +1,11 @@
 """The topics a run appears on in ROS 2 and Foxglove tools, and what is sent on them.
 
-Per robot of a run (`<run>` and `<robot>` made valid ROS name tokens by `ros_token`):
-
-| ROS 2 topic | type | content |
-|---|---|---|
-| `/mapex/<run>/<robot>/map` | nav_msgs/msg/OccupancyGrid | observed map: -1 / 0 / 100 |
-| `/mapex/<run>/<robot>/prediction_mean` | nav_msgs/msg/OccupancyGrid | ensemble mean 0..100 |
-| `/mapex/<run>/<robot>/pose` | geometry_msgs/msg/PoseStamped | robot pose |
-| `/mapex/<run>/<robot>/plan` | nav_msgs/msg/Path | planned path to the goal |
-| `/mapex/<run>/<robot>/trajectory` | nav_msgs/msg/Path | every pose so far |
-
-The same content goes on `/foxglove/mapex/<run>/<robot>/<name>` as `foxglove.Grid`,
-`foxglove.PoseInFrame` and `foxglove.PosesInFrame` (MCAP recordings, the Foxglove server).
-Maps are latched (transient local, the last one kept for late subscribers).
-`RunTopics` turns a run's arrays into `Outgoing` messages; the bridges only send them.
+Per robot of a run (`<run>` and `<robot>` made valid ROS name tokens by `ros_token`): the
+observed map and the ensemble mean (nav_msgs/msg/OccupancyGrid, latched: transient local,
+the last one kept for late subscribers), the pose (geometry_msgs/msg/PoseStamped), the plan
+and the trajectory (nav_msgs/msg/Path), each also as a Foxglove schema; the table is in
+docs/interop.md#topics-mapexinteroptopics. `RunTopics` turns a run's arrays into `Outgoing`
+messages; the bridges only send them.
 """
 
 from __future__ import annotations

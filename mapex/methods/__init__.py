@@ -1,5 +1,6 @@
 """The exploration methods of docs/algorithms.md#methods (the paper's eight, three of our
-own and the authors' follow-up PIPE with its baseline), selectable by name."""
+own, the authors' follow-up PIPE with its baseline, and the team methods of
+docs/algorithms.md#teams), selectable by name from one registry."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from collections.abc import Collection
 
 from mapex.config import ExplorationConfig
 from mapex.methods.base import FrontierScorer, Method, PlanningContext
+from mapex.methods.coordinated import MapExIndependent, MapExPlusTeam, MapExTeam, NearestTeam
 from mapex.methods.ig_hector import IgHector
 from mapex.methods.information_gain import (
     Deterministic,
@@ -36,12 +38,17 @@ METHODS: dict[str, type[Method]] = {
         MapExPlusObserved,
         Pipe,
         PathwiseNbv,
+        MapExTeam,
+        MapExPlusTeam,
+        NearestTeam,
+        MapExIndependent,
     )
 }
 MAIN_COMPARISON = ("nearest", "upen", "ig_hector", "mapex")
 ABLATIONS = ("deterministic", "no_variance", "observed_map", "no_visibility")
 BEYOND_PAPER = ("mapex_path", "mapex_plus", "mapex_plus_observed")  # ours (docs/algorithms.md)
 FOLLOW_UP = ("pipe", "pw_nbv")  # the authors' IROS 2025 follow-up (docs/algorithms.md#pipe)
+TEAM_METHODS = tuple(name for name, cls in METHODS.items() if cls.made_for_teams)
 
 
 def parse_method_list(text: str, known: Collection[str] = METHODS) -> list[str]:
@@ -54,6 +61,12 @@ def parse_method_list(text: str, known: Collection[str] = METHODS) -> list[str]:
             f"unknown method {', '.join(unknown) or repr(text)} (choose from {', '.join(known)})"
         )
     return names
+
+
+def records_team(method: str, robots: int) -> bool:
+    """Whether a run's record carries the team's size and fields (its name ends in
+    -team<N>): several robots, or a method made for teams (docs/algorithms.md#teams)."""
+    return robots > 1 or (method in METHODS and METHODS[method].made_for_teams)
 
 
 def make_method(name: str, config: ExplorationConfig) -> Method:
@@ -69,9 +82,11 @@ __all__ = [
     "FOLLOW_UP",
     "MAIN_COMPARISON",
     "METHODS",
+    "TEAM_METHODS",
     "FrontierScorer",
     "Method",
     "PlanningContext",
     "make_method",
+    "records_team",
     "parse_method_list",
 ]

@@ -15,6 +15,7 @@ import numpy as np
 from mapex.config import ExplorationConfig
 from mapex.frontiers import FrontierClusters
 from mapex.grid import FREE, UNKNOWN
+from mapex.methods.claims import Claim
 from mapex.methods.goals import Goal, cluster_goal
 from mapex.navigation import plan_path
 from mapex.prediction.base import EnsemblePrediction
@@ -103,10 +104,17 @@ class Method(ABC):
     replan_every_steps: int | None = None  # re-plan periodically even if the goal is kept
     # the goal-keeping rule of docs/algorithms.md#goals; UPEN's goals are not frontiers
     drop_goal_without_unknown: bool = True
+    # In a team (docs/algorithms.md#teams): whether the method tells teammates its goals
+    # and heeds theirs; one that does not runs independently on the team's shared map.
+    coordinates: bool = False
+    # Whether the method was made for teams: its records carry the team's size and fields
+    # even for a team of one (their names end in -team<N>).
+    made_for_teams: bool = False
 
     def __init__(self, config: ExplorationConfig) -> None:
         self.config = config
         self.last_scores: np.ndarray | None = None  # per frontier of the last choice, if scored
+        self.teammates: list[Claim] = []  # their claims, set by the team before each re-plan
 
     @abstractmethod
     def select_goal(self, context: PlanningContext) -> Goal | None:
@@ -118,6 +126,11 @@ class Method(ABC):
         main = (0,) if self.reads_main else ()
         members = tuple(range(1, n_members)) if self.reads_members else ()
         return main + members
+
+    def claim_of(self, robot: int, t: int) -> Claim | None:
+        """What robot `robot` tells its teammates after re-planning at step `t` (None: a
+        method that does not coordinate, or no goal)."""
+        return None
 
 
 class FrontierScorer(Method):

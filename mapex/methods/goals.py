@@ -2,36 +2,37 @@
 (docs/algorithms.md#goals).
 
 The robot only drives through known-free cells with a cell of clearance, so a cluster's
-frontier point may be out of reach: a door seen at a grazing angle shows only a one-cell
-diagonal sliver of free cells, which no path without corner cutting can follow. The goal
-of a cluster is therefore, in this order:
-
-1. its frontier point, when reachable;
-2. else the reachable frontier cell of the cluster nearest (Euclidean) to the point;
-3. else, when no cell of the cluster is reachable, the reachable known-free cell nearest
-   to the cluster, the one nearest to the point among equally near ones (the robot
-   approaches and keeps scanning, which reveals the space behind the sliver).
-
-A cell the robot has already scanned from is never a goal: the world is static and the
-LiDAR noise-free, so a second scan from there reveals nothing new. A cluster whose rule
-lands on such a cell is exhausted for now: the robot stood at its approach cell and the
-scan from there changed nothing (a later scan elsewhere may change the cluster, and with it
-its goal). Ties go to the earliest cell in row-major order. Scores are always those of the
-frontier point.
+frontier point may be out of reach (a door seen at a grazing angle shows only a one-cell
+diagonal sliver of free cells). The goal is the frontier point when reachable, else the
+nearest reachable frontier cell of the cluster, else the nearest reachable known-free cell;
+never a cell the robot has already scanned from. Ties go to the earliest cell in row-major
+order. Scores are always those of the frontier point.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import cv2
 import numpy as np
 
 from mapex.grid import FREE
 
-if TYPE_CHECKING:
-    from mapex.methods.base import PlanningContext
+
+class GoalContext(Protocol):
+    """What the goal rule reads of `mapex.methods.base.PlanningContext` (described here, not
+    imported: that module imports this one)."""
+
+    @property
+    def observed(self) -> np.ndarray: ...
+    @property
+    def frontiers(self) -> np.ndarray: ...
+    @property
+    def reachable(self) -> np.ndarray: ...
+    def can_reach(self, cell: np.ndarray) -> bool: ...
+    def cluster_members(self, index: int) -> np.ndarray: ...
+    def was_scanned_from(self, cell: np.ndarray) -> bool: ...
 
 
 @dataclass(frozen=True)
@@ -52,7 +53,7 @@ class Goal:
         return self.frontier is not None and not np.array_equal(self.cell, self.frontier)
 
 
-def cluster_goal(context: PlanningContext, index: int) -> Goal | None:
+def cluster_goal(context: GoalContext, index: int) -> Goal | None:
     """The goal of frontier cluster `index` by the rule above, or None when it has none."""
     point = np.asarray(context.frontiers[index], dtype=np.int64)
     members = context.cluster_members(index)
@@ -65,7 +66,7 @@ def cluster_goal(context: PlanningContext, index: int) -> Goal | None:
 
 
 def _nearest_reachable_member(
-    context: PlanningContext, members: np.ndarray, point: np.ndarray
+    context: GoalContext, members: np.ndarray, point: np.ndarray
 ) -> np.ndarray | None:
     """The reachable member nearest to `point` (the point itself when reachable), or None."""
     offsets = members - point
@@ -77,7 +78,7 @@ def _nearest_reachable_member(
 
 
 def _approach_cell(
-    context: PlanningContext, members: np.ndarray, point: np.ndarray
+    context: GoalContext, members: np.ndarray, point: np.ndarray
 ) -> np.ndarray | None:
     """The reachable known-free cell nearest (Euclidean) to any member; of those equally near,
     the one nearest to the frontier point (then row-major first). None when there is none."""

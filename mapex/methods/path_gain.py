@@ -1,18 +1,12 @@
 """Beyond the paper: MapEx with real path costs and the gain along the way
 (docs/algorithms.md#beyond-the-paper).
 
-* `mapex_path`: MapEx's gain (V_t over the probabilistically visible set) divided by the
-  wall-aware path cost from the robot (`mapex.methods.paths`) instead of the straight-line
-  distance; unreachable frontiers are ranked last.
-* `mapex_plus`: the robot also sees while it drives. The gain of a frontier is the worth of
-  the union of the cells visible (rays on M_t) from samples of the path to it and from the
-  frontier itself, each cell counted once; a cell's worth mixes expected new area (1 per
-  unknown cell) with ensemble disagreement (V_t), weighted by `path_gain.variance_weight`.
-  Divided by the path cost plus a fixed trip cost (`path_gain.cost_offset_cells`), and
-  re-planned every `path_gain.replan_every_steps` steps. Only the `path_gain.top_k` frontiers
-  with the best frontier-only score are raycast along their paths; the frontier-only score
-  is a lower bound of the full one, so every other frontier keeps it and the ranking stays
-  consistent.
+* `mapex_path`: MapEx's gain divided by the wall-aware path cost from the robot
+  (`mapex.methods.paths`) instead of the straight-line distance.
+* `mapex_plus`: the worth of every cell visible (rays on M_t) from samples of the path to a
+  frontier and from the frontier itself, mixing expected new area with V_t, per path cost
+  plus a fixed trip cost, re-planned periodically; only the `path_gain.top_k` frontiers
+  with the best frontier-only score (a lower bound) are raycast along their paths.
 """
 
 from __future__ import annotations

@@ -1,22 +1,11 @@
 """A classical (non-learned) stand-in for the map-prediction ensemble of
 docs/algorithms.md#prediction.
 
-This is plain image inpainting, not a neural network: every member paints the
-observed wall image (known free 0, occupied 1) into the unknown cells with
-OpenCV's `cv2.inpaint` (Navier-Stokes or Telea), each with its own settings
-(`InpaintMemberConfig`: method, radius, working scale, band, prior, contrast).
-
-Why these choices:
-
-* Only a band of unknown cells near the known ones is painted; beyond it a
-  member assumes a constant wall `prior`. Painting all of the unknown space
-  floods everything behind a seen wall with wall, and costs hundreds of ms.
-  Inside the band, walls grow a little behind their seen face (walls are
-  thicker than the one cell a LiDAR sees) and continue along their direction.
-* Members differ in method, radius, scale (full / half / quarter resolution),
-  band and prior, so they disagree about how far and how thick structure
-  continues (variance near walls) and about how much wall the unseen space
-  holds (a small, uniform variance deep in the unknown). All are deterministic.
+Plain image inpainting, not a neural network: every member paints the observed wall image
+(known free 0, occupied 1) into the unknown cells with OpenCV's `cv2.inpaint` (Navier-Stokes
+or Telea), each with its own settings (`InpaintMemberConfig`), only in a band near the known
+cells, with a constant wall prior beyond. All are deterministic. Why these choices:
+docs/prediction.md#the-classical-predictor---predictor-classical.
 """
 
 from __future__ import annotations

@@ -37,7 +37,7 @@ MemberSplit = Literal["thirds", "by_source"]
 
 @dataclass(frozen=True)
 class PredictorTrainingConfig:
-    """Data and schedule of `python -m mapex.prediction.train` (docs/prediction.md#training).
+    """Data and schedule of `python -m mapex.training.train` (docs/prediction.md#training).
 
     Sources (mapex.worlds.data.SOURCES): "houseexpo" (houses along a corridor), "ipa" (IPA
     training maps), "kth" (the two KTH training floors), "procedural" (our plans)."""
@@ -108,7 +108,7 @@ class PredictorTrainingConfig:
 
 @dataclass(frozen=True)
 class PredictorEvaluationConfig:
-    """`python -m mapex.prediction.evaluate` (docs/algorithms.md#prediction): when snapshots are
+    """`python -m mapex.training.evaluate` (docs/algorithms.md#prediction): when snapshots are
     taken, and what
     counts as near the known map."""
 

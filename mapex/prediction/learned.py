@@ -1,14 +1,10 @@
 """The learned ensemble: G and G_1..G_3, LaMa-style generators trained by this project.
 
-The weights ship in `mapex/prediction/weights/` (made by `python -m
-mapex.prediction.train`); they load on CPU with no GPU present and use a GPU when
-asked. A member's stored logit bias is added to its output: G's calibrated decision
-threshold (`mapex.prediction.calibration`), 0 for G_1..G_3. Torch runs with
-`threads` CPU threads (all cores when alone on the machine, one per worker when
-several share it). How the networks run is an `InferenceConfig`: the fused inference
-path by default (`mapex.prediction.inference`), the plain training module on request,
-one or two views, float32 or bfloat16 (docs/benchmarks.md#the-predictor).
-
+The weights ship in `mapex/prediction/weights/` (made by `python -m mapex.training.train`);
+they load on CPU with no GPU present and use a GPU when asked. A member's stored logit bias
+(G's calibrated decision threshold, 0 for G_1..G_3) is added to its output. Torch runs with
+`threads` CPU threads (all cores when alone on the machine, one per worker when several
+share it); an `InferenceConfig` says how the networks run (docs/benchmarks.md#the-predictor).
 The last few answers are kept by crop digest, so the same crop asked twice (G's metric
 prediction and a re-plan's on the same map, or the planners of a team) costs one pass.
 """

@@ -1,23 +1,12 @@
-"""A LaMa-style inpainting generator sized for CPU inference.
+"""A LaMa-style inpainting generator sized for CPU inference (docs/prediction.md).
 
-LaMa (Suvorov et al. 2022) inpaints with *fast Fourier convolutions* (FFC): part of
-every layer's channels is transformed in the frequency domain, so each block sees
-the whole image at once. That global receptive field is what lets a network
-continue a corridor or a row of rooms far into unknown space.
-
-The trunk works at 1/`downscale` resolution: the observed map is folded into
-channels (pixel unshuffle), passes a stem convolution and `n_blocks` FFC residual
-blocks and is unfolded back (pixel shuffle) to one logit per cell; a small
-full-resolution refinement then aligns those logits with the observed walls. Any map
-size is accepted: it is padded to a multiple of `downscale` and cropped back.
-
-Cells beyond the map's border encode as all zeros (neither free, occupied nor
-unknown), so the network knows where the map ends: floor-plan maps are cropped
-to their building, and the outer wall runs along that border.
-
-Weights and activations are kept channels-last (NHWC): the convolutions with few
-channels at full resolution (the stem's input, the refinement) run about three
-times faster on a CPU that way, and the whole forward pass about 1.6 times.
+Fast Fourier convolutions (FFC) let every block see the whole map. The trunk works at
+1/`downscale` resolution: the observed map is folded into channels (pixel unshuffle), passes
+a stem convolution and `n_blocks` FFC residual blocks and is unfolded back (pixel shuffle)
+to one logit per cell; a small full-resolution refinement then aligns those logits with the
+observed walls. Any map size is accepted (padded to a multiple of `downscale`, cropped
+back); cells beyond the map's border encode as all zeros; weights and activations are kept
+channels-last (NHWC). Why each of these: docs/prediction.md.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 A weights file holds the float16 state dict of one member, the network size it
 was built with, the training metadata (data, steps, device, wall time) and a logit
 bias added to the network's output: 0 for a member as trained, G's decision
-threshold once calibrated (`mapex.prediction.calibration`).
+threshold once calibrated (`mapex.training.calibration`).
 """
 
 from __future__ import annotations

@@ -1,28 +1,13 @@
 """`python -m mapex.report RESULTS_DIR`: the evaluation report of a folder of finished runs.
 
 Reads the run folders written by mapex.results (hidden `.name` folders are runs still
-being written and are ignored) and produces, in `--out` (default RESULTS_DIR/report):
-
-* report.md / report.json: per method the mean +- standard error over runs of the
-  coverage, IoU and TU AUCs (docs/algorithms.md#metrics), pooled and per world; MapEx's relative
-  improvement over every other method in the paper's form (AUC_ref - AUC_other) /
-  AUC_other x 100 % (docs/algorithms.md#protocol); the number of runs per world and method.
-* curves.png and curves-<world>.png: mean metric curves with standard-error bands.
-* snapshots.png: observed map and G's prediction at the snapshot steps for one run per
-  method, all on the same world and start (one row per method; one row per method and map
-  kind for wide maps).
-* a time-to-level section (median first step at which coverage and IoU reached 90 / 95 %,
-  runs that never did) with reach.png (share of runs there by step t), and paired
-  differences between methods on the same episodes (mapex.report.reach).
-* for team runs, a Teams section (overlap, path length per robot, lost robots) and
-  teams.png: each team method's merged map with every robot's trajectory (mapex.report.teams).
-
-The mean of the per-run AUCs is the aggregate of docs/algorithms.md#metrics (the AUC of the mean
-curve) when the runs share one sample grid, i.e. one time budget T; mixed budgets are flagged in
-the report.
+being written and are ignored) and writes, in `--out` (default RESULTS_DIR/report),
+report.md / report.json (the AUC tables, MapEx's relative improvement, time to level,
+teams) and the figures; what each holds is in docs/algorithms.md#the-report.
 
 Modules: runs (loading run folders), tables (numbers, Markdown and JSON), figures (curves
-and snapshots), teams (the team part); this one assembles the report and holds the command line.
+and snapshots), reach (time to level), teams (the team part); this one assembles the report
+and holds the command line.
 """
 
 from __future__ import annotations

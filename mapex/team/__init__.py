@@ -1,2 +1,2 @@
-"""Several robots sharing one map and one predictor (docs/algorithms.md#teams): where they
-start, what they claim, how they coordinate and the team's episode loop."""
+"""What several robots sharing one map need (docs/algorithms.md#teams): where they start,
+one prediction per epoch, and the team's state that `mapex.episode` runs."""

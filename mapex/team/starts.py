@@ -14,10 +14,16 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import ndimage
 
-from mapex.config import ExplorationConfig
+from mapex.config import ConfigError, ExplorationConfig
 from mapex.grid import Cell
 from mapex.worlds import StartSpec, World, WorldError, start_cell
 from mapex.worlds.starts import eligible_start_cells
+
+
+def check_team_size(robots: int) -> None:
+    """ConfigError (one line) for a team size below one."""
+    if robots < 1:
+        raise ConfigError(f"--robots must be at least 1 (got {robots})")
 
 
 def team_start_cells(
@@ -40,6 +46,8 @@ def deploy_around(
     world: World, first: Cell, robots: int, spacing_cells: int, clearance_cells: int
 ) -> list[Cell]:
     """`first`, then `robots - 1` eligible cells near it, `spacing_cells` apart (module doc)."""
+    if robots == 1:
+        return [first]
     eligible = eligible_start_cells(world, clearance_cells)
     labels, _ = ndimage.label(~world.occupancy & world.valid_space)
     rows, cols = np.nonzero(eligible & (labels == labels[first]))

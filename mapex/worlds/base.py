@@ -23,6 +23,14 @@ class WorldError(ValueError):
     """A world that cannot be loaded or generated; the message is one line naming the cause."""
 
 
+def parse_seed(text: str, what: str = "generated seed") -> int:
+    """The non-negative integer of a world spec's argument; a one-line WorldError naming
+    `what` otherwise."""
+    if not (text.isascii() and text.isdigit()):
+        raise WorldError(f"bad {what} '{text}': expected a non-negative integer")
+    return int(text)
+
+
 def one_line(error: BaseException) -> str:
     """An exception's message on one line (its type's name if it has none), for WorldError."""
     return " ".join(str(error).split()) or type(error).__name__

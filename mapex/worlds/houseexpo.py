@@ -21,7 +21,14 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from mapex.worlds.base import CORRIDOR_PREFIX, HOUSE_PREFIX, World, WorldError, one_line
+from mapex.worlds.base import (
+    CORRIDOR_PREFIX,
+    HOUSE_PREFIX,
+    World,
+    WorldError,
+    one_line,
+    parse_seed,
+)
 from mapex.worlds.config import HouseExpoConfig
 from mapex.worlds.data import HOUSEEXPO_PLANS
 
@@ -119,6 +126,16 @@ def house_world(index: int, plans: HousePlans | None = None) -> World:
     """One house as a world: its free cells are the valid space, everything else wall."""
     free = rasterise_plan((plans or load_plans()).ring(index))
     return World(f"{HOUSE_PREFIX}{index}", ~free, free.copy())
+
+
+def house_world_of_spec(index: str) -> World:
+    """The world of spec `houseexpo:<index>` (`index` as written after the prefix)."""
+    return house_world(parse_seed(index, "HouseExpo plan index"))
+
+
+def corridor_world_of_spec(seed: str) -> World:
+    """The world of spec `houseexpo-corridor:<seed>`."""
+    return corridor_world(parse_seed(seed))
 
 
 def corridor_world(

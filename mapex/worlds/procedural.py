@@ -1,21 +1,13 @@
 """Seeded office-style floor plans in the KTH world representation (docs/algorithms.md#worlds).
 
 They are the embedded default world and the predictor's main training data, so they copy
-the structure of real office plans. In layout coordinates (y across, x along the main
-corridors) a building is a stack of bands, rows of rooms alternating with corridors
-(R C R, R C RR C R, ...). Cross corridors join the parallel ones; cutting parts of the
-band grid away gives L, T, U and courtyard outlines. A room row is cut into blocks
-between cross corridors and a block into rooms of a repeated module width, with a few
-halls, inner rooms and closed corridor ends. Every space is an axis-aligned rectangle
-painted with its own label; walls go wherever labels change, and doors open along a
-spanning tree grown from the corridors, aligned along each block. Outside the building
-is wall (a sealed building), or, with `free_outside`, free space beyond the outer walls as
-in the KTH maps (the building is still sealed). The walls of a plan are one thickness,
-or, with `outer_wall_thickness`, its outline has its own: the plans with free space
-outside (`OPEN_PLAN_CONFIG`) copy the KTH training maps, 4 or 3 cells between rooms and 2
-around the building. Finally the plan is transposed and flipped at random.
+the structure of real office plans: bands of room rows and corridors joined by cross
+corridors, cut into L, T, U and courtyard outlines, rooms of a repeated module width, doors
+along a spanning tree, sealed or with free space outside; how a plan is built is in
+docs/algorithms.md#worlds.
 
-Run `python -m mapex.worlds.procedural --seed 3 --out plan.png` to look at one.
+Run `python -m mapex.worlds --seed 3 --out plan.png` (mapex/worlds/__main__.py; add
+`--free-outside` for the open plan) to look at one.
 """
 
 from __future__ import annotations
@@ -26,7 +18,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import ndimage
 
-from mapex.worlds.base import World, WorldError, generated_prefix
+from mapex.worlds.base import World, WorldError, generated_prefix, parse_seed
 from mapex.worlds.config import OPEN_PLAN_CONFIG, ProceduralConfig
 
 CORRIDOR_LABEL = 1  # corridors and open areas share one label: no walls between them
@@ -98,6 +90,16 @@ def generate_floor_plan(seed: int, config: ProceduralConfig = DEFAULT_CONFIG) ->
     """The office floor plan of `seed` (deterministic), named "generated:<seed>", or
     "generated-open:<seed>" with `config.free_outside`."""
     return generate_layout(seed, config).world
+
+
+def generated_world(seed: str) -> World:
+    """The world of spec `generated:<seed>` (`seed` as written after the prefix)."""
+    return generate_floor_plan(parse_seed(seed), plan_config(free_outside=False))
+
+
+def open_generated_world(seed: str) -> World:
+    """The world of spec `generated-open:<seed>`: the same plan with free space outside."""
+    return generate_floor_plan(parse_seed(seed), plan_config(free_outside=True))
 
 
 def plan_config(free_outside: bool) -> ProceduralConfig:

@@ -3,13 +3,11 @@ explicit cell.
 
 A start is named either by a corner index 0-3 (the project's protocol) or by a cell
 (row, col) on the 0.1 m grid (the start poses a published protocol lists). On the command
-line: `2` or `15,380`; in run names: `start2` or `start-r15c380`.
-
-Each corner start is the cell nearest (Euclidean; ties broken by row, then column) to a corner of
-the valid-space bounding box that is free, inside valid space and has at least
-`clearance_cells` free cells between it and any wall: its distance-transform value
-(cell centre to the nearest wall-cell centre) is at least `clearance_cells + 1`.
-Cells beyond the map edge count as walls, since the robot cannot go there either.
+line: `2` or `15,380`; in run names: `start2` or `start-r15c380`. A corner start is the
+eligible start cell nearest to that corner of the valid-space bounding box; an eligible
+cell is free, in the valid space, `clearance_cells` clear of walls and in the main free
+space (the drivable space holding the most valid cells), and an explicit cell must be one.
+The exact rules: docs/algorithms.md#worlds.
 """
 
 from __future__ import annotations
@@ -19,9 +17,12 @@ import argparse
 import numpy as np
 from scipy import ndimage
 
-from mapex.config import WorldConfig, argparse_type
+from mapex.config import NavigationConfig, WorldConfig, argparse_type
 from mapex.grid import Cell
 from mapex.worlds.base import World, WorldError
+
+# the planner's default: a start must be where A* can drive to the rest of the building
+ROBOT_WALL_INFLATION_CELLS = NavigationConfig().wall_inflation_cells
 
 N_CORNERS = 4
 StartSpec = int | tuple[int, int]
@@ -43,7 +44,8 @@ def parse_start(text: str) -> StartSpec:
 
 START_HELP = (
     f"a corner 0-{N_CORNERS - 1} of the valid space or a cell ROW,COL of the 0.1 m grid "
-    f"(free, in valid space, {WorldConfig().start_clearance_cells} cells clear of walls)"
+    f"(free, in valid space, {WorldConfig().start_clearance_cells} cells clear of walls, "
+    "connected to the largest part of the building)"
 )
 
 
@@ -79,7 +81,8 @@ def start_label(start: StartSpec) -> str:
 
 def start_cell(world: World, start: StartSpec, clearance_cells: int) -> Cell:
     """The cell of `start` in `world`; WorldError (one line naming map and cell) when an
-    explicit cell is outside the map, on a wall, outside valid space or without clearance."""
+    explicit cell is outside the map, on a wall, outside valid space, not connected to the
+    main free space (a closed room) or without clearance."""
     start = normalise_start(start)
     if isinstance(start, int):
         if not 0 <= start < N_CORNERS:
@@ -96,6 +99,10 @@ def start_cell(world: World, start: StartSpec, clearance_cells: int) -> Cell:
         raise WorldError(f"{where} is on a wall")
     if not world.valid_space[row, col]:
         raise WorldError(f"{where} is outside the valid space")
+    if not main_free_space(world)[row, col]:
+        raise WorldError(
+            f"{where} is not connected to the largest free space of the world (a closed room?)"
+        )
     if not eligible_start_cells(world, clearance_cells)[row, col]:
         raise WorldError(f"{where} has less than {clearance_cells} cells of clearance to a wall")
     return (row, col)
@@ -109,7 +116,8 @@ def start_spec_of(world: World, cell: Cell, clearance_cells: int) -> StartSpec:
 
 
 def start_poses(world: World, clearance_cells: int) -> list[Cell]:
-    """Four starts: nearest to the top-left, top-right, bottom-left, bottom-right corner.
+    """Four starts: the eligible cells nearest to the top-left, top-right, bottom-left and
+    bottom-right corner of the valid space (module doc).
 
     Two corners may share a start on a tiny map; WorldError when no cell qualifies.
     """
@@ -118,17 +126,47 @@ def start_poses(world: World, clearance_cells: int) -> list[Cell]:
     rows, cols = np.nonzero(eligible_start_cells(world, clearance_cells))
     if rows.size == 0:
         raise WorldError(
-            f"world '{world.name}': no free valid cell with {clearance_cells} cells of clearance"
+            f"world '{world.name}': no free valid cell with {clearance_cells} cells of clearance "
+            "in the free space connected to the largest part of the building"
         )
     return [_nearest(rows, cols, corner) for corner in _valid_space_corners(world)]
 
 
 def eligible_start_cells(world: World, clearance_cells: int) -> np.ndarray:
-    """Bool map of the cells that are free, valid and `clearance_cells` clear of any wall."""
+    """Bool map of the cells a robot may start on: free, valid, `clearance_cells` clear of any
+    wall and in the main free space (`main_free_space`)."""
     free = ~world.occupancy
     walled = np.pad(free, 1, constant_values=False)  # the map edge is a wall
     wall_distance = ndimage.distance_transform_edt(walled)[1:-1, 1:-1]
-    return free & world.valid_space & (wall_distance >= clearance_cells + 1)
+    clear = free & world.valid_space & (wall_distance >= clearance_cells + 1)
+    return clear & main_free_space(world)
+
+
+def main_free_space(world: World) -> np.ndarray:
+    """Bool map of the free space connected to the largest part of the building, for the
+    robot: the 4-connected component of drivable cells (free, out of the planner's wall
+    inflation, `NavigationConfig.wall_inflation_cells`) holding the most valid cells (ties:
+    the first in row-major order), with the free cells within the inflation around it. A
+    world with no drivable valid cell falls back to its free cells' components; all False
+    when no free cell is valid."""
+    free = ~world.occupancy
+    radius = ROBOT_WALL_INFLATION_CELLS
+    square = np.ones((2 * radius + 1, 2 * radius + 1), dtype=bool)
+    drivable = free & ~ndimage.binary_dilation(world.occupancy, square)
+    main = _largest_part(drivable, world.valid_space)
+    if main.any():
+        return ndimage.binary_dilation(main, square) & free
+    return _largest_part(free, world.valid_space)
+
+
+def _largest_part(cells: np.ndarray, valid_space: np.ndarray) -> np.ndarray:
+    """The 4-connected component of `cells` with the most valid cells (none: all False)."""
+    labels, count = ndimage.label(cells)  # 4-connected: the robot's moves (module doc)
+    valid_cells = np.bincount(labels[cells & valid_space], minlength=count + 1)
+    valid_cells[0] = 0  # not in `cells`
+    if valid_cells.max() == 0:
+        return np.zeros(cells.shape, dtype=bool)
+    return labels == int(np.argmax(valid_cells))
 
 
 def _valid_space_corners(world: World) -> list[Cell]:

@@ -27,8 +27,12 @@ def grazing_door_world() -> World:
 
 def slit_room_world() -> World:
     """The same building, but the room's door is a 2-cell slit: the robot sees through it and
-    can never pass (walls are inflated by one cell), so frontiers stay out of reach."""
+    can never pass (walls are inflated by one cell), so frontiers stay out of reach. The
+    valid space is the room alone, so the room is the largest part of the building and a
+    start there is allowed (a start cut off from the largest part is refused)."""
     occupancy = grazing_door_world().occupancy.copy()
     occupancy[56:60, 12:16] = True
     occupancy[56:60, 29:31] = False  # the slit, facing the room centre
-    return World("slit-room", occupancy, ~occupancy)
+    valid = np.zeros_like(occupancy)
+    valid[60:100, 10:50] = True
+    return World("slit-room", occupancy, valid)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from mapex.prediction.config import NetworkConfig, PredictorTrainingConfig
-from mapex.prediction.dataset import SnapshotSet, explore_snapshots, training_world_specs
+from mapex.training.dataset import SnapshotSet, explore_snapshots, training_world_specs
 from mapex.worlds import load_world
 
 SMALL = NetworkConfig(channels=16, n_blocks=1, downscale=4, refine_channels=4)

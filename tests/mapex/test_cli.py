@@ -53,6 +53,14 @@ def test_a_team_run_writes_every_robots_trajectory_and_the_team_record(tmp_path)
     assert (tmp_path / "team" / "final.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_a_method_that_does_not_coordinate_runs_as_a_team_sharing_one_map(tmp_path):
+    code = main(["run", "--world", "generated:2", "--method", "nearest", "--robots", "2",
+                 "--steps", "40", "--no-progress", "--out", str(tmp_path / "pair")])  # fmt: skip
+    assert code == 0
+    metrics = json.loads((tmp_path / "pair" / "metrics.json").read_text())
+    assert metrics["method"] == "nearest" and metrics["team"]["robots"] == 2
+
+
 @pytest.mark.slow  # runs the command in a process of its own
 @pytest.mark.parametrize(
     "args, message",
@@ -72,8 +80,8 @@ def test_a_team_run_writes_every_robots_trajectory_and_the_team_record(tmp_path)
         (["--precision", "float16"], "invalid choice"),
         (["--predictor", "classical", "--precision", "bfloat16"], "only the 'lama' predictor"),
         (["--set", "world.max_cells=1000"], "above the limit of 1,000"),
-        (["--robots", "2"], "--robots 2 needs a team method"),
         (["--robots", "0", "--method", "mapex_team"], "--robots must be at least 1"),
+        (["--robots", "0"], "--robots must be at least 1"),
         (["--robots", "x"], "invalid int value"),
         (
             ["--robots", "3", "--method", "nearest_team", "--set", "team.spacing_cells=5000"],

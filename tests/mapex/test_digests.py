@@ -53,19 +53,15 @@ def run_case(case: Case) -> EpisodeResult:
     world = load_world(case.world)
     predictor = None if case.predictor is None else make_predictor(case.predictor)
     config = ExplorationConfig(steps=case.steps, until_iou=case.until_iou)
-    if case.robots == 1 and not case.method.endswith(("_team", "_independent")):
-        return run_episode(world, case.method, predictor, case.start, case.seed, config)
-    from mapex.team.episode import run_team_episode
-
-    return run_team_episode(
-        world, case.method, predictor, case.robots, [case.start], case.seed, config
+    return run_episode(
+        world, case.method, predictor, case.start, case.seed, config, robots=case.robots
     )
 
 
 def digest(result: EpisodeResult) -> str:
     """sha256 of every robot's trajectory, the curves, AUCs, end and final observed map."""
     hasher = hashlib.sha256()
-    for path in getattr(result, "trajectories", None) or [result.trajectory]:
+    for path in result.trajectories:
         hasher.update(np.ascontiguousarray(path, dtype=np.int64).tobytes())
     curves = result.curves
     for values in (curves.steps, curves.coverage, curves.iou, curves.tu):

@@ -23,7 +23,7 @@ def episode(every: int, steps: int = 300, until_iou: float | None = None):
         metrics=MetricsConfig(sample_every_steps=every, reach_levels=LEVELS),
     )
     world = generate_floor_plan(5)
-    return run_episode(world, "nearest", make_predictor("classical"), start=1, config=config)
+    return run_episode(world, "nearest", make_predictor("classical"), 1, config=config)
 
 
 @pytest.fixture(scope="module")

@@ -21,6 +21,7 @@ from mapex.config import ExplorationConfig
 from mapex.episode import run_episode
 from mapex.results import write_results
 from mapex.worlds import load_world
+from services.config import RunConfig
 from services.evaluate import (
     BROKEN_DIR,
     Episode,
@@ -103,10 +104,17 @@ def test_auto_steps_are_resolved_per_world_and_until_iou_reaches_the_planner(tmp
     episodes = plan_episodes(worlds, ["nearest"], [0], [0], steps=None)
     assert [e.steps for e in episodes] == [auto_steps(load_world(w)) for w in worlds]
     assert plan_episodes(worlds, ["nearest"], [0], [0], steps=70)[0].steps == 70
-    args = build_parser().parse_args([*SMALL, "--until-iou", "0.95", "--steps", "auto"])
-    spec = planner_spec(episodes[1], args, tmp_path, [])
+    args = build_parser().parse_args(
+        [*SMALL, "--until-iou", "0.95", "--steps", "auto", "--set", "motion.cells_per_step=2"]
+    )
+    run_config = RunConfig(ExplorationConfig(until_iou=args.until_iou))  # as main builds it
+    settings = run_config.with_overrides(args.overrides).as_overrides()
+    spec = planner_spec(episodes[1], settings, tmp_path, ["--connect", "tcp/127.0.0.1:1"])
     assert spec.args[spec.args.index("--steps") + 1] == str(episodes[1].steps)
-    assert "until_iou=0.95" in spec.args
+    assert spec.args[-6:] == (
+        "--set", "until_iou=0.95", "--set", "motion.cells_per_step=2",
+        "--connect", "tcp/127.0.0.1:1",
+    )  # fmt: skip
 
 
 def test_a_folder_without_the_time_to_level_record_is_run_again(tmp_path, sound_run, caplog):
@@ -131,12 +139,22 @@ def test_an_evaluation_runs_a_team_through_the_pool(tmp_path):
         sys.executable, "-m", "services.evaluate", "--maps", "generated:0", "--methods",
         "nearest_team", "--robots", "2", "--steps", "30", "--starts", "0", "--out", str(out),
         "--no-progress", "--listen", f"tcp/127.0.0.1:{free_loopback_port()}",
+        "--set", "services.predict_timeout_s=20",
     ]  # fmt: skip
     completed = subprocess.run(command, cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
     assert completed.returncode == 0, completed.stderr
     (record,) = run_records(out).values()
     assert record["method"] == "nearest_team" and record["team"]["robots"] == 2
     assert len(record["team"]["path_length_m"]) == 2
+    said = settings_lines(completed.stderr)  # every child runs with the evaluation's --set
+    assert {"episode", "predictor-g", "predictor-g1", "predictor-g2", "predictor-g3"} <= set(said)
+    assert all("services.predict_timeout_s=20.0" in line for line in said.values()), said
+
+
+def settings_lines(log: str) -> dict[str, str]:
+    """Each child's settings line (`[<name>] ... settings: ...`), by name without its run."""
+    found = re.findall(r"\[([a-z0-9_-]+)\][^\n]* INFO (settings: [^\n]*)", log)
+    return {re.sub(r"^episode-.*", "episode", name): line for name, line in found}
 
 
 def test_a_starts_file_gives_each_map_its_own_cells(tmp_path):

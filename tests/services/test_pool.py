@@ -42,6 +42,18 @@ def test_worker_specs_pass_threads_and_the_inference_configuration():
     assert default.args[-6:] == ("--precision", "float32", "--inference", "fused", "--views", "2")
 
 
+def test_worker_specs_hand_every_worker_the_run_s_settings_before_the_zenoh_flags():
+    settings = ["services.predict_timeout_s=20.0", "motion.cells_per_step=2"]
+    specs = worker_specs(("g", "g2"), 1, 1, ["--connect", "tcp/127.0.0.1:1"], settings=settings)
+    for spec in specs:
+        assert spec.args[-6:] == (
+            "--set", "services.predict_timeout_s=20.0", "--set", "motion.cells_per_step=2",
+            "--connect", "tcp/127.0.0.1:1",
+        )  # fmt: skip
+    (plain,) = worker_specs(("g",), 1, 1, [])
+    assert "--set" not in plain.args
+
+
 def test_a_given_hub_is_joined_and_passed_to_every_child():
     config, flags = hub_session_config(
         zenoh_args(mode="client", connect=["tcp/10.0.0.5:7447"]), ServicesConfig()

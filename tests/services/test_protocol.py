@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import zlib
 
 import msgpack
@@ -19,6 +20,7 @@ from services.codec import (
     quantise_probability,
 )
 from services.config import ServicesConfig
+from services.messages import CLAIM_FIELDS, STEP_REPLY_ARRAYS, StepReply
 from services.protocol import (
     ROBOT_TOPICS,
     AliveKey,
@@ -178,14 +180,49 @@ def test_parse_key_rejects_foreign_keys(key):
 # -------------------------------------------------------------------------------- messages
 
 
+def step_request(seq, cells, done=False, claim=None, token=None) -> StepRequest:
+    """A step request that moves through `cells`, with a new claim (goal, score, claimed
+    cells) when `claim` is given."""
+    goal, score, visible = claim if claim is not None else (None, None, None)
+    return StepRequest(seq, cells, done, claim is not None, goal, score, visible, token)
+
+
+def step_reply(seq, rng, robots=3, claims=(), shape=(6, 7), finished=False, rays=5) -> StepReply:
+    """A step reply of `robots` robots (no scans when `finished`) whose robot i has claim
+    state `claims[i]` (default none)."""
+    scanned = 0 if finished else robots
+    state = np.zeros(robots, np.uint8)
+    state[: len(claims)] = claims
+    made = int(np.count_nonzero(state == 1))
+    return StepReply(
+        seq, finished,
+        rng.integers(0, 30, (scanned, 2)).astype(np.int32),
+        rng.integers(1, 200, (scanned, rays)).astype(np.uint16),
+        rng.random((scanned, rays)) < 0.5,
+        np.arange(robots) % 2 == 1,
+        state,
+        rng.integers(0, 6, (robots, 2)).astype(np.int32),
+        np.where(state == 1, rng.random(robots), 0.0),
+        rng.random((made, *shape)) < 0.3,
+        np.arange(robots) == robots - 1,
+    )  # fmt: skip
+
+
 def _sample_messages() -> list[Message]:
     rng = np.random.default_rng(7)
     observed = rng.integers(0, 3, size=(40, 50), dtype=np.uint8)
     cells = rng.integers(0, 200, size=(6, 2)).astype(np.int32)
     occupancy = rng.random((30, 20)) < 0.3
+    claimed = rng.random((40, 50)) < 0.1
     return [
-        StepRequest(4, cells[:3]),
-        StepRequest(0, np.empty((0, 2), np.int32)),
+        step_request(4, cells[:3]),
+        step_request(0, np.empty((0, 2), np.int32)),
+        step_request(7, cells[:1], done=True, token="s3cret"),
+        step_request(9, [], claim=((12, 30), 2.5, claimed), token="s3cret"),
+        step_request(9, cells[:2], claim=((12, 30), -math.inf, claimed)),  # a last resort
+        StepRequest(3, cells[:1], False, True, None, None, None),  # withdraws its claim
+        step_reply(5, rng, claims=(0, 1, 2), shape=(40, 50)),
+        step_reply(6, rng, robots=2, finished=True),
         ScanReply(
             (12, 34),
             rng.integers(1, 400, 2500).astype(np.uint16),
@@ -204,6 +241,7 @@ def _sample_messages() -> list[Message]:
         MetricsMessage(150, 1.0, 0.0, None, True),
         StatusMessage(0, "running", "step 0 of 1000"),
         WorldInfo("generated_3", (30, 20), 0.1, cells[:2] % 20),
+        WorldInfo("generated_3", (30, 20), 0.1, cells[:2] % 20, 2500, 200, 3),
         GroundTruth(occupancy, ~occupancy),
         ErrorReply("predictor busy"),
     ]
@@ -246,6 +284,48 @@ def test_ground_truth_converts_to_and_from_a_world():
     np.testing.assert_array_equal(back.valid_space, world.valid_space)
 
 
+def test_a_claim_scored_minus_infinity_travels_nan_and_plus_infinity_do_not():
+    """nearest_team rules out frontiers near a teammate's goal with -inf and still takes one
+    when nothing else is left: that claim travels; NaN and +inf scores are refused."""
+    visible = np.zeros((4, 5), dtype=bool)
+    payload = step_request(1, [], claim=((2, 3), -math.inf, visible)).encode()
+    assert StepRequest.decode(payload).claim_score == -math.inf
+    for bad in (math.nan, math.inf):
+        with pytest.raises(ProtocolError, match="claim_score"):
+            step_request(1, [], claim=((2, 3), bad, visible))
+
+
+def test_claimed_cells_travel_for_new_claims_only_in_robot_order():
+    """A reply carries one claimed-cells map per new claim: the second robot's claim is the
+    first row when the first robot made none (withdrawn claims carry none)."""
+    reply = step_reply(3, np.random.default_rng(1), claims=(0, 1, 2), shape=(6, 7))
+    decoded = StepReply.decode(reply.encode())
+    assert decoded.claim_visible.shape == (1, 6, 7)
+    np.testing.assert_array_equal(decoded.visible_of(1), reply.claim_visible[0])
+    assert list(decoded.claim_state) == [0, 1, 2]
+
+
+def test_a_finished_reply_carries_no_scans_but_every_robot_s_flags():
+    reply = StepReply.decode(step_reply(8, np.random.default_rng(2), finished=True).encode())
+    assert reply.finished and reply.poses.shape == (0, 2) and reply.n_cells.shape == (0, 5)
+    assert len(reply.lost) == len(reply.stood_still) == len(reply.claim_state) == 3
+    assert {name for name, _, _ in STEP_REPLY_ARRAYS} >= set(CLAIM_FIELDS)
+
+
+def test_world_info_says_the_world_s_settings_and_older_worlds_say_none():
+    info = WorldInfo("w", (5, 5), 0.1, [[1, 1]], 90, 40, 2)
+    assert WorldInfo.decode(info.encode()).settings() == {
+        "n_rays": 90, "range_cells": 40, "cells_per_step": 2,
+    }  # fmt: skip
+    older = msgpack.unpackb(info.encode())
+    for name in ("n_rays", "range_cells", "cells_per_step"):
+        del older[name]  # a world from before the settings were shared
+    assert set(WorldInfo.decode(msgpack.packb(older)).settings().values()) == {None}
+    as_floats = msgpack.unpackb(info.encode())
+    as_floats["n_rays"] = 90.0  # a whole number sent as a float is still that count
+    assert WorldInfo.decode(msgpack.packb(as_floats)).n_rays == 90
+
+
 def test_decode_message_honours_expected_types():
     payload = ErrorReply("no").encode()
     assert decode_message(payload, expected=(PredictReply, ErrorReply)) == ErrorReply("no")
@@ -258,8 +338,8 @@ def test_error_reply_text_is_made_one_line():
 
 
 def test_cells_given_as_python_lists_become_int32():
-    assert StepRequest(1, [[1, 2], [3, 4]]).cells.dtype == np.int32
-    assert StepRequest(0, []).cells.shape == (0, 2)
+    assert step_request(1, [[1, 2], [3, 4]]).cells.dtype == np.int32
+    assert step_request(0, []).cells.shape == (0, 2)
 
 
 def test_quantisation_error_is_at_most_half_a_level():
@@ -395,10 +475,21 @@ def test_malformed_payloads_raise_one_line_protocol_errors(document, message):
         assert "\n" not in str(info.value)
 
 
-def _packed(message: Message, name: str, wire: dict) -> bytes:
+def _packed(message: Message, name: str, wire) -> bytes:
     document = msgpack.unpackb(message.encode())
     document[name] = wire
     return msgpack.packb(document)
+
+
+def _renamed(message: Message, type_name: str) -> bytes:
+    document = msgpack.unpackb(message.encode())
+    document["type"] = type_name
+    return msgpack.packb(document)
+
+
+def _old_step_request() -> bytes:
+    document = msgpack.unpackb(step_request(1, [[1, 2]]).encode())
+    return msgpack.packb({k: document[k] for k in ("schema", "type", "seq", "cells")})
 
 
 @pytest.mark.parametrize(
@@ -406,7 +497,7 @@ def _packed(message: Message, name: str, wire: dict) -> bytes:
     [
         (  # cells must be (k, 2)
             _packed(
-                StepRequest(1, [[1, 2]]),
+                step_request(1, [[1, 2]]),
                 "cells",
                 {"dtype": "int32", "shape": [1, 3], "zlib": False, "data": bytes(12)},
             ),
@@ -414,12 +505,12 @@ def _packed(message: Message, name: str, wire: dict) -> bytes:
             r"\(k, 2\)",
         ),
         (  # the step sequence number is a non-negative integer on the wire too
-            _packed(StepRequest(1, [[1, 2]]), "seq", -3),
+            _packed(step_request(1, [[1, 2]]), "seq", -3),
             StepRequest.decode,
             "seq must be a non-negative",
         ),
         (
-            _packed(StepRequest(1, [[1, 2]]), "seq", "1"),
+            _packed(step_request(1, [[1, 2]]), "seq", "1"),
             StepRequest.decode,
             "field 'seq' must be an integer",
         ),
@@ -511,6 +602,95 @@ def _packed(message: Message, name: str, wire: dict) -> bytes:
             WorldInfo.decode,
             "outside",
         ),
+        (  # the world's settings are counts on the wire too
+            _packed(WorldInfo("w", (5, 5), 0.1, [[1, 1]], 90, 40, 2), "n_rays", 2.5),
+            WorldInfo.decode,
+            "n_rays must be a non-negative integer",
+        ),
+        (
+            _packed(WorldInfo("w", (5, 5), 0.1, [[1, 1]], 90, 40, 2), "cells_per_step", -2),
+            WorldInfo.decode,
+            "cells_per_step must be a non-negative integer",
+        ),
+        (
+            _packed(WorldInfo("w", (5, 5), 0.1, [[1, 1]], 90, 40, 2), "range_cells", "40"),
+            WorldInfo.decode,
+            "field 'range_cells' must be a number",
+        ),
+        (  # a claim travels with its score
+            _packed(
+                step_request(2, [], claim=((1, 1), 1.0, np.zeros((2, 2), bool))),
+                "claim_score",
+                None,
+            ),
+            StepRequest.decode,
+            "a claim needs a claim_score",
+        ),  # fmt: skip
+        (
+            _packed(
+                step_request(2, [], claim=((1, 1), 1.0, np.zeros((2, 2), bool))),
+                "claim_goal",
+                [1, -1],
+            ),
+            StepRequest.decode,
+            "claim_goal",
+        ),  # fmt: skip
+        (
+            _packed(step_request(2, []), "done", 1),
+            StepRequest.decode,
+            "field 'done' must be a boolean",
+        ),
+        (  # the single-robot step request of before teams: no done, no claim fields
+            _old_step_request(),
+            StepRequest.decode,
+            "missing field 'done'",
+        ),
+        (  # the team messages of before: their types are gone
+            _renamed(step_request(1, []), "team_step_request"),
+            decode_message,
+            "unknown message type",
+        ),
+        (
+            _renamed(step_reply(1, np.random.default_rng(0)), "team_scan_reply"),
+            decode_message,
+            "unknown message type",
+        ),
+        (  # one row per robot in every per-robot array
+            _packed(
+                step_reply(1, np.random.default_rng(0)),
+                "lost",
+                encode_array(np.zeros(2, bool)),
+            ),
+            StepReply.decode,
+            "every per-robot array needs 3 rows",
+        ),
+        (
+            _packed(
+                step_reply(1, np.random.default_rng(0)),
+                "claim_state",
+                encode_array(np.array([0, 3, 0], np.uint8)),
+            ),
+            StepReply.decode,
+            "codes other than 0, 1, 2",
+        ),
+        (
+            _packed(
+                step_reply(1, np.random.default_rng(0), claims=(1, 1)),
+                "claim_visible",
+                encode_array(np.zeros((1, 6, 7), bool)),
+            ),
+            StepReply.decode,
+            r"one row per new claim \(2\), got 1",
+        ),
+        (
+            _packed(
+                step_reply(1, np.random.default_rng(0)),
+                "n_cells",
+                encode_array(np.zeros((3, 5), np.int32)),
+            ),
+            StepReply.decode,
+            "must be uint16",
+        ),
         (ErrorReply("x").encode(), MapMessage.decode, "expected a map message"),
         ("not bytes", MapMessage.decode, "must be bytes"),
     ],
@@ -564,11 +744,11 @@ def test_corrupted_payloads_decode_or_raise_protocol_errors_only(message):
 @pytest.mark.parametrize(
     "build, match",
     [
-        (lambda: StepRequest(0, np.zeros((2, 3), np.int32)), r"\(k, 2\)"),
-        (lambda: StepRequest(0, np.array([[0.5, 1.0]])), "integer cells"),
-        (lambda: StepRequest(0, [[-1, 2]]), "negative"),
-        (lambda: StepRequest(-1, []), "seq"),
-        (lambda: StepRequest(True, []), "seq"),
+        (lambda: step_request(0, np.zeros((2, 3), np.int32)), r"\(k, 2\)"),
+        (lambda: step_request(0, np.array([[0.5, 1.0]])), "integer cells"),
+        (lambda: step_request(0, [[-1, 2]]), "negative"),
+        (lambda: step_request(-1, []), "seq"),
+        (lambda: step_request(True, []), "seq"),
         (lambda: PredictRequest(-1, _OBSERVED), "request_id"),
         (lambda: PredictRequest(1, _OBSERVED.astype(np.float32)), "uint8"),
         (lambda: MapMessage(0, "observed", _OBSERVED + 1), "codes other than"),
@@ -577,6 +757,12 @@ def test_corrupted_payloads_decode_or_raise_protocol_errors_only(message):
         (lambda: MetricsMessage(0, 0.5, 0.5, None, 1), "degraded"),
         (lambda: StatusMessage(0, "sleeping"), "state"),
         (lambda: WorldInfo("", (5, 5), 0.1, []), "name"),
+        (lambda: WorldInfo("w", (5, 5), 0.1, [], n_rays=-1), "n_rays"),
+        (lambda: WorldInfo("w", (5, 5), 0.1, [], cells_per_step=1.5), "cells_per_step"),
+        (lambda: step_request(1, [], claim=((1, 1), math.nan, np.zeros((2, 2), bool))), "score"),
+        (lambda: step_request(1, [], claim=((1, 1), math.inf, np.zeros((2, 2), bool))), "score"),
+        (lambda: step_request(1, [], claim=((1, 1), 0.5, np.zeros(4, bool))), "claim_visible"),
+        (lambda: step_request(1, [], token=7), "run_token"),
         (lambda: WorldInfo("w", (5, 5), 0.0, []), "resolution_m"),
     ],
 )

@@ -6,6 +6,8 @@ the default hub tcp/127.0.0.1:7447 nor each other. Every process is killed at te
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import os
 import re
 import signal
@@ -30,15 +32,16 @@ from service_processes import (
 )
 from up_processes import UpProcess, pid_alive, read_run
 
-from mapex.budget import auto_steps
+from mapex.budget import auto_steps, resolve_steps
 from mapex.config import ExplorationConfig
 from mapex.episode import run_episode
 from mapex.prediction.learned import LearnedEnsemble
 from mapex.results import write_results
-from mapex.team.episode import run_team_episode
+from mapex.team.starts import team_start_cells
 from mapex.worlds import load_world
 from mapex.worlds.starts import eligible_start_cells
 from services.codec import DEFAULT_SERVICES, SCHEMA_VERSION
+from services.config import RunConfig
 from services.keys import (
     ROBOT_TOPICS,
     alive_planner_key,
@@ -49,8 +52,9 @@ from services.keys import (
     run_key,
 )
 from services.messages import ErrorReply, PoseMessage, StepRequest, decode_message
+from services.serving import RUN_TOKEN_ENV
 from services.supervisor import ProcessSpec, Supervisor, parse_tcp_endpoint
-from services.up import supervise
+from services.up import build_parser, child_specs, plan_runs, supervise
 from services.zenoh_config import open_session, zenoh_config
 
 WORLD = "generated:0"
@@ -152,9 +156,8 @@ def test_a_team_through_services_up_equals_the_in_process_team(tmp_path):
     torch.set_num_threads(1)
     try:
         world = load_world(WORLD)
-        expected = run_team_episode(
-            world, "mapex_team", LearnedEnsemble(), 2, [0], 0, ExplorationConfig(steps=steps)
-        )
+        config = ExplorationConfig(steps=steps)
+        expected = run_episode(world, "mapex_team", LearnedEnsemble(), 0, 0, config, robots=2)
     finally:
         torch.set_num_threads(threads)
     for robot in (0, 1):
@@ -172,6 +175,81 @@ def test_a_team_through_services_up_equals_the_in_process_team(tmp_path):
             assert list(snapshots["steps"]) == [200]
             np.testing.assert_array_equal(snapshots["observed"][0], expected.snapshots[200][0])
         assert metrics["team"]["overlap"] == round(expected.overlap, 4)
+
+
+SETTINGS = ["motion.cells_per_step=2", "services.predict_timeout_s=20"]
+HANDED_ON = ["motion.cells_per_step=2", "services.predict_timeout_s=20.0"]  # as handed on
+
+
+def up_plan(*flags: str) -> tuple[argparse.Namespace, RunConfig, list]:
+    """services.up's arguments, run configuration and runs for `flags`, as its main has them."""
+    args = build_parser().parse_args(["--world", WORLD, "--run-prefix", "plan", *flags])
+    run_config = RunConfig(ExplorationConfig(until_iou=args.until_iou))
+    run_config = run_config.with_overrides(args.overrides)
+    world = load_world(args.world)
+    exploration = dataclasses.replace(
+        run_config.exploration, steps=resolve_steps(args.steps, world)
+    )
+    run_config = dataclasses.replace(run_config, exploration=exploration)
+    return args, run_config, plan_runs(args, world, exploration)
+
+
+def set_flags(items: list[str]) -> list[str]:
+    return [flag for item in items for flag in ("--set", item)]
+
+
+def test_every_child_gets_the_run_s_settings_on_its_command_line():
+    team = ["--steps", "40", "--robots", "2", "--members", "g,g2"]
+    args, run_config, runs = up_plan(*team, *set_flags(SETTINGS))
+    flags = ["--connect", "tcp/127.0.0.1:1"]
+    specs = child_specs(args, runs, flags, run_config)
+    assert [len(specs[role]) for role in ("workers", "worlds", "planners")] == [2, 1, 2]
+    for spec in specs["workers"] + specs["worlds"] + specs["planners"]:
+        pairs = list(zip(spec.args, spec.args[1:], strict=False))
+        for item in ["steps=40", *HANDED_ON]:
+            assert ("--set", item) in pairs, (spec.name, spec.args)
+        assert spec.args[-2:] == tuple(flags)  # the Zenoh flags come last
+        assert runs[0].token not in spec.args  # the run's secret is in the environment
+    for spec in specs["worlds"] + specs["planners"]:
+        assert spec.env == {RUN_TOKEN_ENV: runs[0].token}, spec  # theirs only
+        assert not spec.restart, spec  # a world that dies ends its run; planners finish
+    assert all(spec.restart and not spec.env for spec in specs["workers"])
+    items = [b for a, b in zip(spec.args, spec.args[1:], strict=False) if a == "--set"]
+    assert RunConfig().with_overrides(items) == run_config  # each child rebuilds the run's
+
+
+def test_a_team_of_any_method_deploys_around_the_start_and_runs_go_round_the_corners():
+    args, run_config, runs = up_plan("--method", "nearest", "--robots", "2", "--start", "1")
+    world = load_world(WORLD)
+    (run,) = runs
+    assert list(run.starts) == team_start_cells(world, [1], 2, run_config.exploration)
+    assert run.starts[0] != run.starts[1] and 1 not in run.starts  # cells, not corners 1, 2
+    _, _, alone = up_plan("--method", "nearest", "--runs", "3", "--start", "3")
+    assert [run.starts for run in alone] == [(3,), (0,), (1,)]
+    assert len({run.token for run in alone}) == 3 and [run.seed for run in alone] == [0, 1, 2]
+
+
+def test_set_reaches_the_world_and_every_process_of_an_up_run(tmp_path):
+    """`--set motion.cells_per_step=2` moves the robot 2 cells a step (the world simulated
+    it, the planner agreed to it); `--set services.predict_timeout_s=20` is what the
+    planner, the world and the worker say they run with, and what the planner used."""
+    sets = set_flags([*SETTINGS, "services.predict_max_cells=1000", "services.workers_wait_s=15"])
+    up, _ = start_up(
+        tmp_path, "set", "--method", "nearest", "--steps", "40", "--members", "g", *sets
+    )
+    try:
+        assert up.wait() == 0, up.log()
+    finally:
+        up.kill()
+    metrics, trajectory, _ = read_run(tmp_path / "runs" / "set-0-r0")
+    assert len(trajectory) == 41
+    assert np.abs(np.diff(trajectory, axis=0)).max() == 2  # Chebyshev: 2 cells, not 3
+    assert metrics["config"]["motion"]["cells_per_step"] == 2
+    assert "within 20 s" in metrics["degraded_from_start"]  # the planner's own timeout
+    said = dict(re.findall(r"\[([a-z0-9_-]+)\][^\n]* INFO (settings: [^\n]*)", up.log()))
+    assert {"planner-set-0-r0", "world-set-0", "predictor-g"} <= set(said), up.log()
+    for name, line in said.items():
+        assert all(f" {item}" in line for item in HANDED_ON), (name, line)
 
 
 def kill_child_at_step(up: UpProcess, endpoint: str, run: str, child: str, step: int) -> None:
@@ -348,7 +426,9 @@ def test_an_auto_budget_run_ends_once_gs_iou_reaches_the_level(tmp_path):
         (["--set", "sensor.nope=1"], "error"),
         (["--start", "4"], "corners are 0-3"),
         (["--start", "0,0"], "world 'generated:0': start cell (0, 0) is on a wall"),
-        (["--start", "20,20", "--robots", "2"], "a cell --start places one robot"),
+        (["--start", "0,0", "--robots", "2"], "start cell (0, 0) is on a wall"),
+        (["--robots", "3", "--set", "team.spacing_cells=5000"], "room for 1 robots 5000 cells"),
+        (["--set", "services.nope=1"], "override 'services.nope=1': unknown field 'nope'"),
         (["--out", "README.md"], "cannot write results to README.md: it is a file"),
         (["--set", "world.max_cells=1000"], "--set world.max_cells="),
     ],
@@ -402,7 +482,7 @@ def attack(session, run: str) -> list[str]:
 
 def step_without_token(session, run: str, seq: int) -> str:
     """A well-formed step of robot r0 from a client that lacks the run's token: the reply."""
-    request = StepRequest(seq, np.array([[1, 1]], dtype=np.int32))
+    request = StepRequest(seq, np.array([[1, 1]], dtype=np.int32), False, False, None, None, None)
     key = robot_key(run, "r0", "step")
     (reply,) = session.get(key, payload=request.encode(), timeout=5.0)
     assert reply.err is not None

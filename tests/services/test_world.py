@@ -1,16 +1,20 @@
-"""The world simulator as a real process on loopback, and its pure WorldServer.
+"""The world simulator as a real process on loopback, and its pure lockstep WorldServer.
 
-The test process opens the hub session on a free loopback port and acts as the planner; world
-processes are spawned with subprocess (never forked) against it and are all killed at teardown
-whatever happens.
+The test process opens the hub session on a free loopback port and acts as the planners;
+world processes are spawned with subprocess (never forked) against it and are all killed at
+teardown whatever happens. A world answers the step of seq s once every robot of its team
+has asked for it (or `services.team_step_wait_s` has passed), so a test that drives a team
+sends every robot's request from a thread of its own, as the robots' planners do.
 """
 
 from __future__ import annotations
 
+import logging
 import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import msgpack
@@ -24,32 +28,46 @@ from service_processes import (
     until,
 )
 
-from mapex.config import ExplorationConfig, SensorConfig
+from mapex.config import ExplorationConfig, MotionConfig, SensorConfig
+from mapex.methods.claims import Claim
 from mapex.simulator import Simulator
+from mapex.team.starts import team_start_cells
+from mapex.team.team import Decision
 from mapex.worlds import load_world, start_poses
 from services.codec import encode_array, pack_message
 from services.config import ServicesConfig
-from services.keys import alive_world_key, robot_id, robot_key, run_key
+from services.keys import alive_planner_key, alive_world_key, robot_id, robot_key, run_key
 from services.messages import (
     ErrorReply,
     GroundTruth,
     Message,
     PoseMessage,
     ScanReply,
+    StepReply,
     StepRequest,
     WorldInfo,
     decode_message,
 )
-from services.world import StartError, WorldServer
+from services.world import StartError, WorldServer, serve
 from services.world_client import WorldUnavailableError, ZenohWorld
 from services.zenoh_config import open_session, zenoh_config
 
 WORLD_SPEC = "generated:3"
-RUN = "world_test"
-STARTS = (0, 2, 3)  # r0 drives and is compared, r1 retries, r2 takes the bad requests
-QUERY_TIMEOUT_S = 5.0
+QUERY_TIMEOUT_S = 5.0  # well below the default team_step_wait_s: a test never waits on it
 START_DEADLINE_S = 60.0  # imports and numba cache loads on a shared 2-core machine
 NEIGHBOURS = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc])
+DEFAULTS = ExplorationConfig()
+
+# the world processes: run -> (starts, --set items); each test drives a world of its own
+DRIVE, RETRY, BAD, SET, SIGINT = "drive_test", "retry_test", "bad_test", "set_test", "sigint_test"
+SET_ITEMS = ("motion.cells_per_step=2", "sensor.n_rays=360", "services.team_step_wait_s=0.5")
+WORLDS = {
+    DRIVE: ((0, 2), ()),  # a team of two, both driven in lockstep and compared
+    RETRY: ((2,), ()),
+    BAD: ((3,), ()),
+    SET: ((1, 3), SET_ITEMS),  # only r0 drives: r1 is waited for 0.5 s, then stands still
+    SIGINT: ((1,), ()),
+}
 
 
 def random_walk(occupancy: np.ndarray, start, n_steps: int, cells_per_step: int, seed: int):
@@ -67,14 +85,21 @@ def random_walk(occupancy: np.ndarray, start, n_steps: int, cells_per_step: int,
     return steps
 
 
+def step_request(seq: int, cells=(), done=False, claim=None, token: str | None = None) -> bytes:
+    """A step request through `cells`; `claim` (goal, score, claimed cells) a new claim."""
+    goal, score, visible = claim if claim is not None else (None, None, None)
+    cells = np.asarray(cells, dtype=np.int32).reshape(-1, 2)
+    return StepRequest(seq, cells, done, claim is not None, goal, score, visible, token).encode()
+
+
 class WorldProcesses(ServiceProcesses):
     """World processes spawned against one hub."""
 
-    def start(self, run: str, starts: tuple[int, ...]):
-        robots, start_list = str(len(starts)), [str(s) for s in starts]
+    def start(self, run: str, starts: tuple[int, ...], settings: tuple[str, ...] = ()):
+        sets = [flag for item in settings for flag in ("--set", item)]
         return self.spawn(
             run, "services.world", "--world", WORLD_SPEC, "--run", run,
-            "--robots", robots, "--starts", *start_list,
+            "--robots", str(len(starts)), "--starts", *map(str, starts), *sets,
         )  # fmt: skip
 
     def wait_alive(self, session, run: str) -> None:
@@ -89,8 +114,8 @@ def _token_alive(session, run: str) -> bool:
 def worlds(hub, tmp_path_factory):
     processes = WorldProcesses(hub[1], tmp_path_factory.mktemp("logs"))
     try:
-        processes.start(RUN, STARTS)
-        processes.start("sigint_test", (1,))
+        for run, (starts, settings) in WORLDS.items():
+            processes.start(run, starts, settings)
         for run in processes.processes:
             processes.wait_alive(hub[0], run)
         yield processes
@@ -106,117 +131,203 @@ def _get(session, key: str, payload: bytes | None = None) -> Message:
     return decode_message(sample.payload.to_bytes())
 
 
-def _step(session, robot: int, seq: int, cells) -> Message:
-    return _get(session, robot_key(RUN, robot_id(robot), "step"), StepRequest(seq, cells).encode())
+def _step(session, run: str, robot: int, seq: int, cells=()) -> Message:
+    return _get(session, robot_key(run, robot_id(robot), "step"), step_request(seq, cells))
 
 
-def _assert_same_scan(reply: Message, scan) -> None:
-    assert isinstance(reply, ScanReply), reply
-    assert reply.pose == tuple(int(v) for v in scan.pose)
-    np.testing.assert_array_equal(reply.n_cells, scan.n_cells)
-    np.testing.assert_array_equal(reply.hit, scan.hit)
+def _step_together(session, run: str, seq: int, cells: list) -> list[Message]:
+    """Every robot's step `seq` (robot i through cells[i]), each asked from its own thread."""
+    replies: dict[int, Message] = {}
+
+    def ask(robot: int) -> None:
+        replies[robot] = _step(session, run, robot, seq, cells[robot])
+
+    threads = [threading.Thread(target=ask, args=(robot,)) for robot in range(len(cells))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(QUERY_TIMEOUT_S + 5)
+    return [replies[robot] for robot in range(len(cells))]
+
+
+def _assert_same_scans(reply: Message, scans: list) -> None:
+    assert isinstance(reply, StepReply), reply
+    assert len(reply.poses) == len(scans)
+    for robot, scan in enumerate(scans):
+        assert tuple(reply.poses[robot]) == tuple(int(v) for v in scan.pose), robot
+        np.testing.assert_array_equal(reply.n_cells[robot], scan.n_cells)
+        np.testing.assert_array_equal(reply.hit[robot], scan.hit)
+
+
+def _assert_same_scan(scan, expected) -> None:
+    assert tuple(int(v) for v in scan.pose) == tuple(int(v) for v in expected.pose)
+    np.testing.assert_array_equal(scan.n_cells, expected.n_cells)
+    np.testing.assert_array_equal(scan.hit, expected.hit)
+
+
+def _fetch(session, run: str) -> tuple[WorldInfo, GroundTruth]:
+    info, truth = (
+        _get(session, run_key(run, "world_info")),
+        _get(session, run_key(run, "ground_truth")),
+    )
+    assert isinstance(info, WorldInfo) and isinstance(truth, GroundTruth)
+    return info, truth
 
 
 # ---------------------------------------------------------------------- a real world process
 
 
-def test_steps_give_the_scans_of_an_in_process_simulator(hub, worlds):
+def test_a_team_s_steps_give_the_scans_of_an_in_process_simulator(hub, worlds):
     session = hub[0]
-    poses, scans = [], []
-    pose_sub = session.declare_subscriber(
-        robot_key(RUN, "r0", "pose"), lambda s: poses.append(s.payload.to_bytes())
-    )
-    scan_sub = session.declare_subscriber(
-        robot_key(RUN, "r0", "scan"), lambda s: scans.append(s.payload.to_bytes())
-    )
-    info = _get(session, run_key(RUN, "world_info"))
-    truth = _get(session, run_key(RUN, "ground_truth"))
-    assert isinstance(info, WorldInfo) and isinstance(truth, GroundTruth)
-    config = ExplorationConfig()
-    world = truth.to_world(info.name, info.resolution_m)
-    local = Simulator(world, [tuple(info.starts[0])], config.sensor, config.motion)
-    walk = random_walk(truth.occupancy, info.starts[0], 6, config.motion.cells_per_step, seed=5)
-    try:
-        _assert_same_scan(_step(session, 0, 0, []), local.scan(0))
-        for seq, cells in enumerate(walk, start=1):
-            _assert_same_scan(_step(session, 0, seq, cells), local.step(0, cells))
-        until(lambda: len(poses) == len(scans) == len(walk) + 1, "the published steps")
-    finally:
-        pose_sub.undeclare()
-        scan_sub.undeclare()
-    published = [PoseMessage.decode(p) for p in poses]
-    assert [(m.t, m.pose) for m in published[-2:]] == [
-        (len(walk) - 1, tuple(map(int, walk[-2][-1]))),
-        (len(walk), tuple(map(int, walk[-1][-1]))),
+    info, truth = _fetch(session, DRIVE)
+    published: dict[tuple[int, str], list[bytes]] = {}
+    subscribers = [
+        session.declare_subscriber(
+            robot_key(DRIVE, robot_id(robot), topic),
+            lambda s, k=(robot, topic): published.setdefault(k, []).append(s.payload.to_bytes()),
+        )
+        for robot in (0, 1)
+        for topic in ("pose", "scan")
     ]
-    assert ScanReply.decode(scans[-1]).pose == published[-1].pose
+    world = truth.to_world(info.name, info.resolution_m)
+    starts = [tuple(map(int, start)) for start in info.starts]
+    local = Simulator(world, starts, DEFAULTS.sensor, DEFAULTS.motion)
+    walks = [
+        random_walk(truth.occupancy, start, 6, 3, seed=5 + k) for k, start in enumerate(starts)
+    ]
+    try:
+        first = _step_together(session, DRIVE, 0, [[], []])
+        for reply in first:  # every robot gets the one reply: every robot's scan
+            _assert_same_scans(reply, [local.scan(0), local.scan(1)])
+        for seq in range(1, 7):
+            cells = [walks[0][seq - 1], walks[1][seq - 1]]
+            replies = _step_together(session, DRIVE, seq, cells)
+            expected = [local.step(robot, cells[robot]) for robot in (0, 1)]
+            for reply in replies:
+                _assert_same_scans(reply, expected)
+                assert reply.seq == seq and not reply.finished
+                assert not reply.stood_still.any() and not reply.lost.any()
+                assert not reply.claim_state.any()  # nobody claimed
+        until(
+            lambda: all(
+                len(published.get((r, t), ())) == 7 for r in (0, 1) for t in ("pose", "scan")
+            ),
+            "the published steps",
+        )
+    finally:
+        for subscriber in subscribers:
+            subscriber.undeclare()
+    for robot in (0, 1):
+        poses = [PoseMessage.decode(p) for p in published[robot, "pose"]]
+        assert [m.t for m in poses] == list(range(7))  # t = seq: the initial scan is t = 0
+        assert poses[-1].pose == tuple(map(int, walks[robot][-1][-1]))
+        assert ScanReply.decode(published[robot, "scan"][-1]).pose == poses[-1].pose
 
 
-def test_a_repeated_seq_returns_the_same_scan_without_moving(hub, worlds):
+def test_a_repeated_seq_returns_the_same_step_without_moving(hub, worlds):
     session = hub[0]
-    truth = _get(session, run_key(RUN, "ground_truth"))
-    start = _get(session, run_key(RUN, "world_info")).starts[1]
-    first, second = random_walk(truth.occupancy, start, 2, 3, seed=11)
-    assert isinstance(_step(session, 1, 0, []), ScanReply)
-    moved = _step(session, 1, 1, first)
-    again = _step(session, 1, 1, first)
-    also = _step(session, 1, 1, [])  # the cells of a retry do not matter: nothing moves
-    for reply in (again, also):
-        assert reply.pose == moved.pose == tuple(map(int, first[-1]))
+    info, truth = _fetch(session, RETRY)
+    first, second = random_walk(truth.occupancy, info.starts[0], 2, 3, seed=11)
+    assert isinstance(_step(session, RETRY, 0, 0), StepReply)
+    moved = _step(session, RETRY, 0, 1, first)
+    again = _step(session, RETRY, 0, 1, first)
+    also = _step(session, RETRY, 0, 1)  # the cells of a retry do not matter: nothing moves
+    for reply in (moved, again, also):
+        assert isinstance(reply, StepReply) and reply.seq == 1
+        assert tuple(reply.poses[0]) == tuple(map(int, first[-1]))
         np.testing.assert_array_equal(reply.n_cells, moved.n_cells)
-    assert _step(session, 1, 2, second).pose == tuple(map(int, second[-1]))
+    assert tuple(_step(session, RETRY, 0, 2, second).poses[0]) == tuple(map(int, second[-1]))
+    assert tuple(_step(session, RETRY, 0, 1, first).poses[0]) == tuple(map(int, first[-1]))
 
 
-def _bad_payloads(pose) -> dict[str, bytes]:
-    row, col = pose
-    far_jump = StepRequest(1, [[row, col + 2]])
+def _bad_payloads() -> dict[str, bytes]:
     float_cells = {"seq": 1, "cells": encode_array(np.zeros((1, 2), np.float32))}
+    request = msgpack.unpackb(step_request(1))
+    old = {k: request[k] for k in ("schema", "type", "seq", "cells")}
     return {
-        "bad move": far_jump.encode(),
-        "skipped seq": StepRequest(5, []).encode(),
+        "skipped seq": step_request(5),
         "random bytes": np.random.default_rng(3).bytes(200),
         "wrong schema": msgpack.packb({"schema": 99, "type": "step_request", "seq": 1}),
         "wrong type": ErrorReply("not a step").encode(),
         "wrong dtype": pack_message("step_request", float_cells),
+        "single-robot request of before": msgpack.packb(old),
+        "team request of before": msgpack.packb({**request, "type": "team_step_request"}),
     }
 
 
 def test_bad_requests_get_an_error_reply_and_the_world_answers_on(hub, worlds):
-    session, key = hub[0], robot_key(RUN, "r2", "step")
-    start = _get(session, run_key(RUN, "world_info")).starts[2]
-    initial = _step(session, 2, 0, [])
-    assert isinstance(initial, ScanReply)
-    for what, payload in _bad_payloads(start).items():
+    session, key = hub[0], robot_key(BAD, "r0", "step")
+    info, truth = _fetch(session, BAD)
+    start = tuple(map(int, info.starts[0]))
+    initial = _step(session, BAD, 0, 0)
+    assert isinstance(initial, StepReply)
+    for what, payload in [*_bad_payloads().items(), ("no payload", None)]:
         reply = _get(session, key, payload)
         assert isinstance(reply, ErrorReply), what
-        expected = {"bad move": "not one move", "skipped seq": "out of order"}
+        expected = {"skipped seq": "out of order", "no payload": "carries no payload"}
         assert expected.get(what, "malformed step request") in reply.message, what
-    assert isinstance(_get(session, key), ErrorReply)  # no payload at all
-    assert worlds.processes[RUN].poll() is None
-    assert _step(session, 2, 0, []).pose == initial.pose  # never moved
-    truth = _get(session, run_key(RUN, "ground_truth"))
+    assert worlds.processes[BAD].poll() is None
+    again = _step(session, BAD, 0, 0)  # the initial step, as cached
+    assert again.seq == 0 and tuple(again.poses[0]) == start  # never moved
+    far_jump = _step(session, BAD, 0, 1, [[start[0], start[1] + 2]])  # a refused motion:
+    assert isinstance(far_jump, StepReply) and tuple(far_jump.poses[0]) == start  # stood
     (cells,) = random_walk(truth.occupancy, start, 1, 3, seed=2)
-    assert _step(session, 2, 1, cells).pose == tuple(map(int, cells[-1]))
-    assert "refused a malformed step request" in worlds.log_of(RUN)
+    assert tuple(_step(session, BAD, 0, 2, cells).poses[0]) == tuple(map(int, cells[-1]))
+    log = worlds.log_of(BAD)
+    assert "refused a malformed step request" in log
+    assert "robot r0: refused motion of step 1" in log and "Traceback" not in log
+
+
+def test_a_world_started_with_set_simulates_and_waits_as_set(hub, worlds):
+    """`--set` reaches the world: its sensor and motion (said in world_info, applied to
+    every step) and its services section (how long a step waits for a late robot)."""
+    session = hub[0]
+    info, truth = _fetch(session, SET)
+    assert info.settings() == {"n_rays": 360, "range_cells": 200, "cells_per_step": 2}
+    world = truth.to_world(info.name, info.resolution_m)
+    starts = [tuple(map(int, start)) for start in info.starts]
+    local = Simulator(world, starts, SensorConfig(n_rays=360), MotionConfig(cells_per_step=2))
+    walk = random_walk(truth.occupancy, starts[0], 3, 1, seed=7)
+    two, three = np.concatenate(walk[:2]), np.concatenate(walk)  # 2 and 3 cells in one step
+    timed = []
+    for seq, cells in enumerate([[], three, two]):
+        began = time.monotonic()
+        reply = _step(session, SET, 0, seq, cells)  # r1 never asks
+        timed.append(time.monotonic() - began)
+        assert isinstance(reply, StepReply) and list(reply.stood_still) == [False, True]
+        if seq == 1:  # 3 cells where 2 are allowed: refused, r0 stands still
+            expected = [local.scan(0), local.scan(1)]
+        else:
+            expected = [local.scan(0) if seq == 0 else local.step(0, cells), local.scan(1)]
+        _assert_same_scans(reply, expected)
+        assert reply.n_cells.shape == (2, 360)
+    assert all(0.4 <= wait_s < QUERY_TIMEOUT_S for wait_s in timed), timed  # not 10 s
+    log = worlds.log_of(SET)
+    assert all(item in log for item in SET_ITEMS), log  # the world's settings line
+    assert "refused motion of step 1" in log
+    assert "no request from r1 in time: standing still" in log
 
 
 def test_a_late_joiner_gets_world_info_and_ground_truth(hub, worlds):
     late = open_session(zenoh_config(connect=[hub[1]]))
     try:
-        info = until(lambda: _try_get(late, run_key(RUN, "world_info")), "world_info")
-        truth = until(lambda: _try_get(late, run_key(RUN, "ground_truth")), "ground_truth")
+        info = until(lambda: _try_get(late, run_key(DRIVE, "world_info")), "world_info")
+        truth = until(lambda: _try_get(late, run_key(DRIVE, "ground_truth")), "ground_truth")
     finally:
         late.close()
     world = load_world(WORLD_SPEC)
-    expected_starts = [
-        start_poses(world, ExplorationConfig().world.start_clearance_cells)[i] for i in STARTS
-    ]
+    corners = start_poses(world, DEFAULTS.world.start_clearance_cells)
     assert (info.name, info.shape, info.resolution_m) == (
         world.name,
         world.shape,
         world.resolution_m,
     )
-    np.testing.assert_array_equal(info.starts, expected_starts)
+    np.testing.assert_array_equal(info.starts, [corners[i] for i in WORLDS[DRIVE][0]])
+    assert info.settings() == {
+        "n_rays": DEFAULTS.sensor.n_rays,
+        "range_cells": DEFAULTS.sensor.range_cells,
+        "cells_per_step": DEFAULTS.motion.cells_per_step,
+    }
     np.testing.assert_array_equal(truth.occupancy, world.occupancy)
     np.testing.assert_array_equal(truth.valid_space, world.valid_space)
 
@@ -227,12 +338,12 @@ def _try_get(session, key: str) -> Message | None:
 
 
 def test_sigint_stops_the_world_cleanly(hub, worlds):
-    process = worlds.processes["sigint_test"]
+    process = worlds.processes[SIGINT]
     process.send_signal(signal.SIGINT)
     assert process.wait(STOP_DEADLINE_S) == 0
-    assert not _token_alive(hub[0], "sigint_test")
-    log = worlds.log_of("sigint_test")
-    assert "stopped after serving 0 steps" in log and "Traceback" not in log
+    assert not _token_alive(hub[0], SIGINT)
+    log = worlds.log_of(SIGINT)
+    assert "stopped after serving 0 scans" in log and "Traceback" not in log
 
 
 @pytest.mark.parametrize(
@@ -243,7 +354,12 @@ def test_sigint_stops_the_world_cleanly(hub, worlds):
         (["--starts", "7"], "corners are 0-3"),
         (["--starts", "0,1"], "start cell (0, 1) is on a wall"),
         (["--robots", "2", "--starts", "0"], "names 1 starts for 2 robots"),
+        (["--robots", "0"], "--robots must be at least 1"),
         (["--run", "predict"], "--run 'predict' must match"),
+        (["--team", "2"], "unrecognized arguments: --team"),
+        (["--set", "sensor.nope=1"], "override 'sensor.nope=1': unknown field 'nope'"),
+        (["--set", "services.team_step_wait_s=soon"], "'soon' is not a valid float"),
+        (["--set", "motion.cells_per_step"], "is not of the form section.field=value"),
     ],
 )
 def test_bad_world_starts_and_flags_are_one_line_errors(flags, message, tmp_path):
@@ -266,6 +382,7 @@ def test_bad_world_starts_and_flags_are_one_line_errors(flags, message, tmp_path
 
 
 SMALL = ExplorationConfig(sensor=SensorConfig(n_rays=90, range_cells=40))
+QUICK = ServicesConfig(team_step_wait_s=2.0)
 
 
 @pytest.fixture(scope="module")
@@ -278,48 +395,64 @@ def test_world_server_serves_fresh_steps_once_and_caches_retries(world):
     server = WorldServer(world, [0], SMALL, on_step=lambda *event: heard.append(event))
     start = server.starts[0]
     (cells,) = random_walk(world.occupancy, start, 1, 3, seed=1)
-    first = server.answer_step(0, StepRequest(0, []).encode())
-    assert first.pose == start
-    assert server.answer_step(0, StepRequest(0, cells).encode()) is first  # a retry: cached
-    moved = server.answer_step(0, StepRequest(1, cells).encode())
-    assert moved.pose == tuple(map(int, cells[-1]))
+    first = server.answer_step(0, step_request(0))
+    assert isinstance(first, StepReply) and tuple(first.poses[0]) == start
+    assert server.answer_step(0, step_request(0, cells)) is first  # a retry: cached
+    moved = server.answer_step(0, step_request(1, cells))
+    assert tuple(moved.poses[0]) == tuple(map(int, cells[-1]))
     assert [(robot, seq) for robot, seq, _ in heard] == [(0, 0), (0, 1)]
-    assert heard[-1][2] is moved and server.served == 2
+    assert isinstance(heard[-1][2], ScanReply) and heard[-1][2].pose == tuple(moved.poses[0])
+    assert server.served == 2 and server.seq == 2
 
 
 @pytest.mark.parametrize(
     "robot, payload, match",
     [
-        (0, StepRequest(1, []).encode(), "seq 1 is out of order, expected 0"),
+        (0, step_request(1), "step seq 1 is out of order, at 0"),
         (0, None, "carries no payload"),
         (0, b"\x93garbage", "malformed step request"),
-        (1, StepRequest(0, []).encode(), "robot 1 is not one of 0-0"),
-        (-1, StepRequest(0, []).encode(), "robot -1 is not one of"),
-        (0, StepRequest(0, [[0, 0]]).encode(), "refused motion"),
+        (0, ErrorReply("x").encode(), "malformed step request"),
+        (1, step_request(0), "robot 1 is not one of 0-0"),
+        (-1, step_request(0), "robot -1 is not one of"),
     ],
 )
 def test_world_server_refuses_bad_requests_without_raising(world, robot, payload, match):
     server = WorldServer(world, [0], SMALL)
     reply = server.answer_step(robot, payload)
     assert isinstance(reply, ErrorReply) and match in reply.message
-    assert "\n" not in reply.message and server.served == 0
+    assert "\n" not in reply.message and server.served == 0 and server.seq == 0
     assert tuple(server.simulator.poses[0]) == server.starts[0]
+
+
+def test_a_refused_motion_leaves_the_robot_where_it_stands_and_the_run_goes_on(world, caplog):
+    server = WorldServer(world, [0], SMALL)
+    start = server.starts[0]
+    server.answer_step(0, step_request(0))
+    with caplog.at_level(logging.WARNING, logger="services.world"):
+        stood = server.answer_step(0, step_request(1, [[0, 0]]))  # a wall, far away
+    assert isinstance(stood, StepReply) and tuple(stood.poses[0]) == start
+    assert "robot r0: refused motion of step 1" in caplog.text
+    (cells,) = random_walk(world.occupancy, start, 1, 3, seed=3)
+    moved = server.answer_step(0, step_request(2, cells))
+    assert tuple(moved.poses[0]) == tuple(map(int, cells[-1])) and server.served == 3
 
 
 @pytest.mark.parametrize("token", [None, "", "wrong", "s3cret-but-longer"])
 def test_a_world_with_a_run_token_refuses_steps_without_it(world, token):
     server = WorldServer(world, [0], SMALL, run_token="s3cret")
-    reply = server.answer_step(0, StepRequest(0, [], token).encode())
+    reply = server.answer_step(0, step_request(0, token=token))
     assert isinstance(reply, ErrorReply) and "without this run's token" in reply.message
-    assert server.served == 0 and server._last_seq == [None]  # nothing moved, seq untouched
-    assert isinstance(server.answer_step(0, StepRequest(0, [], "s3cret").encode()), ScanReply)
+    assert server.served == 0 and server.seq == 0  # nothing moved, seq untouched
+    assert isinstance(server.answer_step(0, step_request(0, token="s3cret")), StepReply)
 
 
-def test_world_server_knows_its_robots_starts_and_world(world):
+def test_world_server_knows_its_robots_starts_world_and_settings(world):
     server = WorldServer(world, [3, 1], SMALL)
     corners = start_poses(world, SMALL.world.start_clearance_cells)
     assert server.starts == [corners[3], corners[1]] and server.n_robots == 2
-    np.testing.assert_array_equal(server.world_info().starts, [corners[3], corners[1]])
+    info = server.world_info()
+    np.testing.assert_array_equal(info.starts, [corners[3], corners[1]])
+    assert info.settings() == {"n_rays": 90, "range_cells": 40, "cells_per_step": 3}
     np.testing.assert_array_equal(server.ground_truth().occupancy, world.occupancy)
 
 
@@ -336,15 +469,177 @@ def test_world_server_refuses_bad_starts(world, starts, match):
         WorldServer(world, starts, SMALL)
 
 
+# ------------------------------------------------------ a team in lockstep (threads = planners)
+
+
+@pytest.fixture
+def team():
+    team_world = load_world("generated:0")
+    cells = team_start_cells(team_world, [0], 2, SMALL)
+    return WorldServer(team_world, cells, SMALL, run_token="tok", services=QUICK)
+
+
+def team_request(seq: int, cells=(), done=False, claim=None, token="tok") -> bytes:
+    return step_request(seq, cells, done, claim, token)
+
+
+def together(server, payloads: dict[int, bytes | None]) -> dict[int, object]:
+    """Each robot's request sent from a thread of its own, as planners do; the replies."""
+    replies: dict[int, object] = {}
+    threads = [
+        threading.Thread(target=lambda r=r, p=p: replies.update({r: server.answer_step(r, p)}))
+        for r, p in payloads.items()
+    ]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(5.0)
+    return replies
+
+
+def test_every_robot_gets_every_scan_and_claim_of_the_step(team):
+    first = together(team, {0: team_request(0), 1: team_request(0)})
+    assert first[0] is first[1] and isinstance(first[0], StepReply)
+    np.testing.assert_array_equal(first[0].poses, team.starts)
+    start = team.starts[0]
+    step = (start[0], start[1] + 1)
+    visible = np.zeros(team.world.shape, dtype=bool)
+    visible[5, 5] = True
+    second = together(team, {0: team_request(1, [step], claim=((30, 30), 2.5, visible)),
+                             1: team_request(1)})  # fmt: skip
+    reply = second[0]
+    assert second[1] is reply
+    assert tuple(reply.poses[0]) == step and tuple(reply.poses[1]) == tuple(team.starts[1])
+    assert list(reply.claim_state) == [1, 0] and reply.claim_scores[0] == 2.5
+    assert len(reply.claim_visible) == 1 and reply.visible_of(0)[5, 5]  # new claims only
+    assert not reply.stood_still.any()
+    assert team.answer_step(1, team_request(1)) is reply  # a retry gets the same reply
+    assert team.served == 4  # two robots, two steps: a retry scans nothing
+
+
+def test_a_step_waits_for_every_robot_and_the_late_one_gets_the_step_it_missed(team):
+    together(team, {0: team_request(0), 1: team_request(0)})
+    start = team.starts[0]
+    began = time.monotonic()
+    (reply,) = together(team, {0: team_request(1, [(start[0], start[1] + 1)])}).values()
+    assert time.monotonic() - began >= QUICK.team_step_wait_s - 0.05  # it waited for r1
+    assert list(reply.stood_still) == [False, True]
+    late = team.answer_step(1, team_request(1, [(team.starts[1][0] + 1, team.starts[1][1])]))
+    assert late is reply and tuple(reply.poses[1]) == tuple(team.starts[1])  # not applied
+    replies = together(team, {0: team_request(2), 1: team_request(2)})  # in step again
+    assert replies[0] is replies[1] and not replies[0].stood_still.any()
+
+
+def test_a_team_with_nothing_left_is_finished_without_a_step(team):
+    together(team, {0: team_request(0), 1: team_request(0)})
+    one_done = together(team, {0: team_request(1, done=True), 1: team_request(1)})
+    assert not one_done[0].finished and len(one_done[0].poses) == 2  # the other goes on
+    served = team.served
+    replies = together(team, {0: team_request(2, done=True), 1: team_request(2, done=True)})
+    assert replies[0].finished and len(replies[0].poses) == 0 and team.served == served
+
+
+def test_a_robot_alone_with_nothing_left_is_finished(world):
+    server = WorldServer(world, [0], SMALL)
+    assert not server.answer_step(0, step_request(0, done=True)).finished  # seq 0: scans
+    reply = server.answer_step(0, step_request(1, done=True))
+    assert reply.finished and len(reply.poses) == 0 and server.served == 1
+
+
+def test_team_steps_without_the_token_or_out_of_order_are_refused(team):
+    assert "without this run's token" in team.answer_step(0, team_request(0, token="x")).message
+    reply = team.answer_step(0, team_request(3))
+    assert isinstance(reply, ErrorReply) and "out of order" in reply.message
+    assert "malformed step request" in team.answer_step(0, b"\x00junk").message
+    assert team.seq == 0 and team.served == 0
+
+
+def test_a_lost_robot_is_not_waited_for_and_its_claim_expires(team):
+    together(team, {0: team_request(0), 1: team_request(0)})
+    visible = np.zeros(team.world.shape, dtype=bool)
+    together(team, {0: team_request(1), 1: team_request(1, claim=((30, 30), 1.0, visible))})
+    team.planner_gone(1)
+    began = time.monotonic()
+    (reply,) = together(team, {0: team_request(2)}).values()
+    assert time.monotonic() - began < QUICK.team_step_wait_s  # not waited for
+    assert list(reply.lost) == [False, True] and list(reply.stood_still) == [False, True]
+    assert list(reply.claim_state) == [0, 2]  # robot 1's claim is withdrawn, once
+    (after,) = together(team, {0: team_request(3, done=True)}).values()
+    assert list(after.claim_state) == [0, 0] and after.finished  # the robots left are done
+
+
+def test_a_planner_whose_liveliness_token_goes_makes_its_robot_lost(hub, team):
+    planners = open_session(zenoh_config(connect=[hub[1]], listen=[]))
+    watcher = team.watch_planners(hub[0], "lost_test")
+    try:
+        tokens = [
+            planners.liveliness().declare_token(alive_planner_key(run, robot))
+            for run, robot in (("lost_test", "r0"), ("lost_test", "r1"), ("other", "r0"))
+        ]
+        time.sleep(0.5)  # the tokens arrive; a token that appears loses nobody
+        assert team.lost == set()
+        tokens[2].undeclare()  # another run's robot 0
+        tokens[1].undeclare()
+        until(lambda: team.lost == {1}, "robot r1 to be lost")
+        time.sleep(0.3)
+        assert team.lost == {1}
+        tokens[0].undeclare()
+        until(lambda: team.lost == {0, 1}, "robot r0 to be lost")
+    finally:
+        watcher.undeclare()
+        planners.close()
+
+
+# ------------------------------------------------------------- the planner's side: ZenohWorld
+
+
+def test_a_planner_s_zenoh_world_gets_what_an_in_process_simulator_gives(hub, world):
+    server = WorldServer(world, [0], SMALL)
+    stop = threading.Event()
+    thread = threading.Thread(target=serve, args=(hub[0], server, "client_test", stop))
+    thread.start()
+    session = open_session(zenoh_config(connect=[hub[1]], listen=[]))
+    try:
+        source = ZenohWorld(session, "client_test", 0)
+        info, fetched = source.fetch(timeout_s=10.0)
+        assert info.settings() == {"n_rays": 90, "range_cells": 40, "cells_per_step": 3}
+        np.testing.assert_array_equal(fetched.occupancy, world.occupancy)
+        local = Simulator(world, server.starts, SMALL.sensor, SMALL.motion)
+        (scan,) = source.initial()
+        _assert_same_scan(scan, local.scan(0))
+        (cells,) = random_walk(world.occupancy, server.starts[0], 1, 3, seed=4)
+        visible = np.zeros(world.shape, dtype=bool)
+        visible[3, 4] = True
+        claim = Claim(0, 0, (30, 40), -np.inf, visible)  # a last-resort claim travels too
+        step = source.step(0, [Decision(0, cells, True, claim)])
+        (scan,) = step.scans
+        _assert_same_scan(scan, local.step(0, cells))
+        (got,) = step.claims.values()
+        assert (got.robot, got.t, got.goal, got.score) == (0, 0, (30, 40), -np.inf)
+        np.testing.assert_array_equal(got.visible, visible)
+        assert not step.finished and step.lost == ()
+        assert source.step(1, [Decision(0, np.zeros((0, 2)), True, None)]).claims == {0: None}
+        done = source.step(2, [Decision(0, None)])
+        assert done.finished and done.scans == []
+    finally:
+        session.close()
+        stop.set()
+        thread.join(10.0)
+    assert server.served == 3
+
+
 def test_a_gone_world_is_asked_again_with_back_off_for_the_whole_wait():
     """A step query nobody serves returns at once: the planner keeps asking, with growing
-    pauses, until step_retries x step_timeout_s has passed, and says so honestly."""
-    services = ServicesConfig(step_timeout_s=0.5, step_retries=2, step_retry_pause_s=(0.05, 0.2))
+    pauses, until step_retries x (step_timeout_s + team_step_wait_s) has passed, and says
+    so honestly."""
+    services = ServicesConfig(
+        step_timeout_s=0.3, team_step_wait_s=0.2, step_retries=2, step_retry_pause_s=(0.05, 0.2)
+    )
     session = open_session(zenoh_config("peer", [], [f"tcp/127.0.0.1:{free_loopback_port()}"]))
     try:
         began = time.monotonic()
         with pytest.raises(WorldUnavailableError) as info:
-            ZenohWorld(session, "nobody", services).scan(0)
+            ZenohWorld(session, "nobody", 0, services).initial()
         elapsed_s = time.monotonic() - began
     finally:
         session.close()

@@ -45,7 +45,7 @@ def test_a_100_step_run_reads_back_with_every_topic_and_the_final_map(tmp_path):
     config = ExplorationConfig(steps=100)
     result = run_episode(
         world, "mapex", make_predictor("classical"), 0, 0, config,
-        on_step=lambda t, explorer, _: recording.step(t, [explorer]),
+        on_step=lambda t, explorers, _: recording.step(t, explorers),
     )  # fmt: skip
     written = recording.close()
     counts = mcap_counts(path)

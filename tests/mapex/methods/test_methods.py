@@ -13,6 +13,7 @@ from mapex.methods import (
     FOLLOW_UP,
     MAIN_COMPARISON,
     METHODS,
+    TEAM_METHODS,
     PlanningContext,
     make_method,
 )
@@ -69,6 +70,11 @@ EXPECTED_SIDE = {
     "mapex_plus_observed": "left",
     "pipe": "right",
     "pw_nbv": "left",
+    # alone (no teammates' claims) a team method chooses as the method it wraps
+    "mapex_team": "right",
+    "mapex_plus_team": "right",
+    "nearest_team": "left",
+    "mapex_independent": "right",
 }
 
 
@@ -76,7 +82,7 @@ def test_every_method_is_registered():
     assert (
         set(METHODS)
         == set(EXPECTED_SIDE)
-        == set(MAIN_COMPARISON) | set(ABLATIONS) | set(BEYOND_PAPER) | set(FOLLOW_UP)
+        == {*MAIN_COMPARISON, *ABLATIONS, *BEYOND_PAPER, *FOLLOW_UP, *TEAM_METHODS}
     )
 
 
@@ -110,8 +116,8 @@ def test_seeded_episode_is_deterministic(name):
     world = generate_floor_plan(5)
     predictor = make_predictor("classical")
     config = ExplorationConfig(steps=120)
-    first = run_episode(world, name, predictor, start=1, seed=7, config=config)
-    second = run_episode(world, name, predictor, start=1, seed=7, config=config)
+    first = run_episode(world, name, predictor, 1, seed=7, config=config)
+    second = run_episode(world, name, predictor, 1, seed=7, config=config)
     np.testing.assert_array_equal(first.trajectory, second.trajectory)
     np.testing.assert_array_equal(first.final_observed, second.final_observed)
     for name_ in ("steps", "coverage", "iou", "tu"):  # NaN-aware: TU is NaN between samples

@@ -102,7 +102,7 @@ def test_without_the_turned_view_predict_logits_is_one_forward_pass():
 
 
 def test_convolutions_are_channels_last_also_after_loading_weights():
-    """The CPU speed of the full-resolution convolutions depends on it (network docstring)."""
+    """The CPU speed of the full-resolution convolutions depends on it (docs/prediction.md)."""
     source = LamaGenerator(SMALL)
     net = LamaGenerator(SMALL)
     net.load_state_dict({k: v.clone().contiguous() for k, v in source.state_dict().items()})

@@ -10,12 +10,11 @@ import pytest
 from mapex.config import ExplorationConfig, TeamConfig
 from mapex.episode import run_episode
 from mapex.grid import FREE, UNKNOWN
+from mapex.methods import METHODS, TEAM_METHODS, make_method
 from mapex.methods.base import PlanningContext
+from mapex.methods.claims import Claim, ClaimBoard
 from mapex.prediction import make_predictor
 from mapex.prediction.base import EnsemblePrediction
-from mapex.team.claims import Claim, ClaimBoard
-from mapex.team.episode import run_team_episode
-from mapex.team.methods import TEAM_METHODS, make_team_method
 from mapex.team.shared_prediction import EpochPrediction
 from mapex.team.starts import team_start_cells
 from mapex.worlds import WorldError, generate_floor_plan, load_world
@@ -84,7 +83,7 @@ def test_claimed_cells_are_worth_nothing_to_teammates():
 
 
 def test_nearest_team_keeps_away_from_a_teammates_goal():
-    method = make_team_method("nearest_team", CONFIG)
+    method = make_method("nearest_team", CONFIG)
     context = _context(CONFIG)
     alone = method.select_goal(context)
     method.teammates = [Claim(1, 0, tuple(alone.cell), 1.0, np.zeros((21, 61), bool))]
@@ -104,7 +103,7 @@ def test_mapex_team_claims_the_goals_visible_set_and_with_path_claims_the_way_th
     context = _context(config)
     members = np.zeros((4, *context.observed.shape), np.float32)
     members[1, :, 35:] = 0.1  # the members disagree right of col 35 only: goal (10, 40)
-    method = make_team_method("mapex_team", config)
+    method = make_method("mapex_team", config)
     goal = method.select_goal(replace(context, prediction=EnsemblePrediction(members)))
     visible = method.claim_of(0, 3).visible
     assert tuple(goal.frontier) == (10, 40)
@@ -112,8 +111,8 @@ def test_mapex_team_claims_the_goals_visible_set_and_with_path_claims_the_way_th
     assert not visible[:, :25].any()  # nothing on the far side
     assert visible[4, 34] == (every > 0)  # seen from (10, 34) on the way, out of the goal's range
 
-    method = make_team_method("mapex_independent", CONFIG)
-    assert not method.claims and method.claim_of(0, 0) is None
+    method = make_method("mapex_independent", CONFIG)
+    assert not method.coordinates and method.claim_of(0, 0) is None
 
 
 def test_the_board_keeps_the_latest_claim_of_each_robot():
@@ -148,9 +147,10 @@ def test_claims_made_at_one_step_settle_the_same_whatever_their_order():
     assert first.settle(made) == second.settle(dict(reversed(list(made.items())))) == [1]
 
 
-def test_unknown_team_methods_are_refused():
-    with pytest.raises(ValueError, match="unknown team method 'mapex'"):
-        make_team_method("mapex", CONFIG)
+def test_only_the_team_methods_coordinate_and_every_method_is_made_for_teams_or_not():
+    coordinating = {name for name, method in METHODS.items() if method.coordinates}
+    assert coordinating == {"mapex_team", "mapex_plus_team", "nearest_team"}
+    assert set(TEAM_METHODS) == coordinating | {"mapex_independent"}
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -158,8 +158,8 @@ def test_unknown_team_methods_are_refused():
 
 @pytest.mark.parametrize("name", sorted(TEAM_METHODS))
 def test_seeded_team_episode_is_deterministic(name, world, predictor):
-    first = run_team_episode(world, name, predictor, 2, [1], seed=7, config=CONFIG)
-    second = run_team_episode(world, name, predictor, 2, [1], seed=7, config=CONFIG)
+    first = run_episode(world, name, predictor, [1], robots=2, seed=7, config=CONFIG)
+    second = run_episode(world, name, predictor, [1], robots=2, seed=7, config=CONFIG)
     for a, b in zip(first.trajectories, second.trajectories, strict=True):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(first.final_observed, second.final_observed)
@@ -170,15 +170,15 @@ def test_seeded_team_episode_is_deterministic(name, world, predictor):
 
 
 def test_one_independent_robot_is_the_single_robot_run(world, predictor):
-    team = run_team_episode(world, "mapex_independent", predictor, 1, [2], seed=3, config=CONFIG)
-    alone = run_episode(world, "mapex", predictor, start=2, seed=3, config=CONFIG)
+    team = run_episode(world, "mapex_independent", predictor, [2], robots=1, seed=3, config=CONFIG)
+    alone = run_episode(world, "mapex", predictor, 2, seed=3, config=CONFIG)
     np.testing.assert_array_equal(team.trajectories[0], alone.trajectory)
     assert team.curves.coverage == alone.curves.coverage and team.overlap == 0.0
 
 
 def test_every_robot_holds_the_merged_map_and_overlap_counts_shared_cells(predictor):
     world = load_world("generated:0")
-    result = run_team_episode(world, "mapex_team", predictor, 2, [0], seed=0, config=CONFIG)
+    result = run_episode(world, "mapex_team", predictor, [0], robots=2, seed=0, config=CONFIG)
     assert 0.0 < result.overlap < 1.0
     assert all(length > 0 for length in result.path_lengths_m)
     assert result.robots == 2 and len(result.robot_stats) == 2
@@ -210,13 +210,13 @@ def test_the_team_predicts_once_per_epoch_on_the_epochs_map(predictor):
     counting = _Counting(predictor)
     shared = EpochPrediction(counting, epoch_steps=10, margin_cells=20)
     shared.begin_step(10, maps[0])
-    first = shared.prediction(maps[0])
+    first = shared.prediction(maps[0], (0, 1, 2, 3))
     shared.begin_step(11, maps[1])
-    later = shared.prediction(maps[1])  # same epoch: no new prediction
+    later = shared.prediction(maps[1], (0, 1, 2, 3))  # same epoch: no new prediction
     assert len(counting.maps) == 1 and np.array_equal(counting.maps[0], maps[0])
     np.testing.assert_array_equal(later.members, first.with_known(maps[1]).members)
     shared.begin_step(20, maps[2])
-    shared.prediction(maps[2])
+    shared.prediction(maps[2], (0, 1, 2, 3))
     assert len(counting.maps) == 2 and np.array_equal(counting.maps[1], maps[2])
 
 
@@ -224,7 +224,7 @@ def test_the_team_predicts_once_per_epoch_on_the_epochs_map(predictor):
 def test_epoch_predictions_keep_team_runs_deterministic(world, predictor, epoch_steps):
     config = replace(CONFIG, team=TeamConfig(prediction_epoch_steps=epoch_steps))
     runs = [
-        run_team_episode(world, "mapex_team", predictor, 2, [1], seed=5, config=config)
+        run_episode(world, "mapex_team", predictor, [1], robots=2, seed=5, config=config)
         for _ in range(2)
     ]
     for a, b in zip(runs[0].trajectories, runs[1].trajectories, strict=True):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 from tiny_training import TINY
 
-from mapex.prediction.dataset import explore_snapshots, training_world_specs
-from mapex.prediction.train import build_parser
+from mapex.training.dataset import explore_snapshots, training_world_specs
+from mapex.training.train import build_parser
 from mapex.worlds.data import (
     IPA_DIR,
     IPA_HELD_OUT_MAPS,

@@ -12,6 +12,7 @@ from mapex.config import WorldConfig
 from mapex.worlds import World, WorldError, generate_floor_plan, load_kth_map, start_poses
 from mapex.worlds.starts import (
     eligible_start_cells,
+    main_free_space,
     parse_start,
     start_argument,
     start_cell,
@@ -44,6 +45,7 @@ def test_clearance_moves_the_start_away_from_the_walls(clearance: int, first) ->
 def test_ties_break_by_row_then_column() -> None:
     walls = np.ones((3, 3), dtype=bool)
     walls[0, 1] = walls[1, 0] = False  # both at distance 1 from the corner (0, 0)
+    walls[1, 1] = False  # joins them (4-connected)
     world = World("tie", walls, np.ones((3, 3), dtype=bool))
     assert start_poses(world, 0)[0] == (0, 1)
 
@@ -145,3 +147,66 @@ def test_a_cell_is_named_by_its_corner_when_it_is_one() -> None:
     corners = start_poses(world, CLEARANCE)
     assert start_spec_of(world, corners[2], CLEARANCE) == 2
     assert start_spec_of(world, (10, 10), CLEARANCE) == (10, 10)
+
+
+def building_with_closet() -> World:
+    """A 60 x 80 building with a closed 12 x 12 closet in its top-left corner (no door)."""
+    walls = np.zeros((60, 80), dtype=bool)
+    walls[[0, -1], :] = True
+    walls[:, [0, -1]] = True
+    walls[13, :14] = True  # the closet: rows 1-12, cols 1-12
+    walls[:14, 13] = True
+    return World("closet", walls, ~walls)
+
+
+def test_a_corner_start_is_not_in_a_closed_closet() -> None:
+    world = building_with_closet()
+    starts = start_poses(world, CLEARANCE)
+    in_closet = [row <= 12 and col <= 12 for row, col in starts]
+    assert in_closet == [False, False, False, False]
+    # the nearest cell to the top-left corner outside the closet: past its walls
+    assert starts[0] == (4, 17) and starts[1:] == [(4, 75), (55, 4), (55, 75)]
+    assert not eligible_start_cells(world, CLEARANCE)[:13, :13].any()
+
+
+def test_an_explicit_cell_in_a_closed_closet_is_refused_in_one_line() -> None:
+    world = building_with_closet()
+    with pytest.raises(WorldError) as caught:
+        start_cell(world, (6, 6), CLEARANCE)
+    message = str(caught.value)
+    assert "\n" not in message
+    assert message == (
+        "world 'closet': start cell (6, 6) is not connected to the largest free space of the "
+        "world (a closed room?)"
+    )
+    assert start_cell(world, (30, 40), CLEARANCE) == (30, 40)
+
+
+def test_free_space_outside_the_valid_space_connects_rooms() -> None:
+    # two rooms joined by a doorway that is not valid space (as in the KTH maps): the small
+    # room's corner stays there, it is connected to the large one
+    walls = np.zeros((30, 80), dtype=bool)
+    walls[[0, -1], :] = True
+    walls[:, [0, -1, 20]] = True
+    walls[12:18, 20] = False  # the doorway
+    valid = ~walls
+    valid[:, 20] = False
+    world = World("doorway", walls, valid)
+    assert main_free_space(world)[5, 5] and start_poses(world, CLEARANCE)[0] == (4, 4)
+
+
+def test_the_largest_part_of_the_building_wins_over_larger_free_space_outside() -> None:
+    # a sealed building inside a larger free area outside the valid space (generated-open)
+    walls = np.zeros((100, 100), dtype=bool)
+    walls[40:61, 40:61] = True
+    walls[41:60, 41:60] = False
+    valid = np.zeros_like(walls)
+    valid[41:60, 41:60] = True
+    world = World("open", walls, valid)
+    assert main_free_space(world)[50, 50] and not main_free_space(world)[5, 5]
+    assert start_poses(world, CLEARANCE)[0] == (44, 44)
+
+
+def test_no_free_valid_cell_means_no_main_free_space() -> None:
+    world = World("solid", np.ones((5, 5), dtype=bool), np.ones((5, 5), dtype=bool))
+    assert not main_free_space(world).any()

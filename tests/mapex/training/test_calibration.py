@@ -9,15 +9,8 @@ import torch
 from tiny_training import SMALL, TINY, tiny_overrides, tiny_snapshots
 from torch import nn
 
-import mapex.prediction.train as train
+import mapex.training.train as train
 from mapex.grid import UNKNOWN
-from mapex.prediction.calibration import (
-    calibrate,
-    calibration_sample,
-    iou_by_threshold,
-    logit_bias,
-)
-from mapex.prediction.dataset import source_shares
 from mapex.prediction.learned import LearnedEnsemble
 from mapex.prediction.network import LamaGenerator
 from mapex.prediction.weights import (
@@ -27,6 +20,13 @@ from mapex.prediction.weights import (
     save_weights,
     set_logit_bias,
 )
+from mapex.training.calibration import (
+    calibrate,
+    calibration_sample,
+    iou_by_threshold,
+    logit_bias,
+)
+from mapex.training.dataset import source_shares
 
 
 @pytest.fixture(scope="module")

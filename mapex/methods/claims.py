@@ -1,15 +1,12 @@
 """What a robot of a team tells its teammates when it re-plans: its claim.
 
 A claim is the goal a robot drives to, the frontier score that made it choose it, and the
-cells it expects to see there (the goal frontier's visible set). Teammates do not count
-claimed cells in their own gains (`mapex_team`) or keep away from claimed goals
-(`nearest_team`), so the team spreads out. A robot's claim lasts until its next claim or
-until it is lost (docs/algorithms.md#teams).
-
-The claims made at step t are settled together, after every robot chose its motion of t
-(`ClaimBoard.settle`): robots see them from step t + 1 on, so the outcome depends only on
-what was claimed, never on the order messages arrive in, and a team run is the same in one
-process and across processes.
+cells it expects to see there. Teammates do not count claimed cells in their own gains
+(`mapex_team`) or keep away from claimed goals (`nearest_team`), so the team spreads out. A
+claim lasts until the robot's next claim or until it is lost. The claims made at step t are
+settled together (`ClaimBoard.settle`) and seen from step t + 1 on, so the outcome never
+depends on the order messages arrive in, and a team run is the same in one process and
+across processes (docs/algorithms.md#teams).
 """
 
 from __future__ import annotations

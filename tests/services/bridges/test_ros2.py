@@ -29,9 +29,10 @@ from zenoh.ext import HistoryConfig, declare_advanced_subscriber  # noqa: E402
 from mapex.grid import FREE, OCCUPIED, UNKNOWN  # noqa: E402
 from mapex.interop import rmw_zenoh as rmw  # noqa: E402
 from mapex.interop import ros_messages as ros  # noqa: E402
-from services import ros2  # noqa: E402
+from services.bridges import ros2  # noqa: E402
+from services.bridges.follow import Update  # noqa: E402
+from services.bridges.ros_translate import RunTranslator  # noqa: E402
 from services.config import Ros2Config  # noqa: E402
-from services.follow import Update  # noqa: E402
 from services.messages import (  # noqa: E402  # noqa: E402
     MapMessage,
     PathMessage,
@@ -40,7 +41,6 @@ from services.messages import (  # noqa: E402  # noqa: E402
     WorldInfo,
     decode_message,
 )
-from services.ros_translate import RunTranslator  # noqa: E402
 
 GRID_HASH = "RIHS01_8d348150c12913a31ee0ec170fbf25089e4745d17035792a1ba94d6f0bc0cfc7"
 TOPIC_NAMES = ("map", "prediction_mean", "pose", "plan", "trajectory")

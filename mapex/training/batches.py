@@ -15,8 +15,8 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
-from mapex.prediction.dataset import CropSampler
 from mapex.prediction.network import encode_observed
+from mapex.training.dataset import CropSampler
 
 Batch = tuple[np.ndarray, np.ndarray, np.ndarray]
 

@@ -17,7 +17,7 @@ from service_processes import ServiceProcesses, free_loopback_port  # noqa: E402
 
 from mapex.interop.ros_messages import MapFrame, grid_values_in_map_order  # noqa: E402
 from mapex.interop.topics import RunTopics  # noqa: E402
-from services import record  # noqa: E402
+from services.bridges import record  # noqa: E402
 from services.messages import MapMessage, PoseMessage, StatusMessage  # noqa: E402
 
 RECORDER_DEADLINE_S = 60.0  # a cold interpreter on a shared 2-core machine
@@ -44,7 +44,7 @@ def test_bad_flags_are_one_line_and_exit_2(tmp_path, capsys, argv, text):
 
 def test_the_foxglove_server_serves_the_ros_and_foxglove_channels():
     pytest.importorskip("foxglove", reason="the foxglove extra is not installed")
-    from services.foxglove_live import FoxgloveServer
+    from services.bridges.foxglove_live import FoxgloveServer
 
     server = FoxgloveServer(port=0)
     try:

@@ -5,7 +5,7 @@
   process (`services.ros2`), supervised like the others;
 * `--web [PORT]`: the live browser view, in-process (`services.web`);
 * `--foxglove [PORT]`: the Foxglove SDK's WebSocket server, in-process
-  (`services.foxglove_live`).
+  (`services.bridges.foxglove_live`).
 
 Everything in-process follows the runs on the hub session; every flag's problem (a file
 that exists, a missing extra) is one line before any process starts.
@@ -22,11 +22,11 @@ import zenoh
 
 from mapex.config import ConfigError
 from mapex.interop.mcap_file import record_path_problem
+from services.bridges.foxglove_live import FOXGLOVE_DEFAULT_PORT, FoxgloveLive
+from services.bridges.record import RunRecorder
+from services.bridges.web import WebView
 from services.config import DEFAULT_WEB, WebConfig
-from services.foxglove_live import FOXGLOVE_DEFAULT_PORT, FoxgloveLive
-from services.record import RunRecorder
 from services.supervisor import ProcessSpec
-from services.web import WebView
 
 log = logging.getLogger("services.outside_tools")
 
@@ -81,7 +81,7 @@ def bridge_spec(args: argparse.Namespace, zenoh_flags: Sequence[str]) -> list[Pr
         return []
     extra = ["--ros-connect", args.ros_connect] if args.ros_connect else []
     extra += ["--domain", str(args.ros_domain)] if args.ros_domain is not None else []
-    return [ProcessSpec("ros2-bridge", "services.ros2", (*extra, *zenoh_flags))]
+    return [ProcessSpec("ros2-bridge", "services.bridges.ros2", (*extra, *zenoh_flags))]
 
 
 class OutsideTools:

@@ -20,6 +20,16 @@ from PIL import Image
 from service_processes import REPO_ROOT, STOP_DEADLINE_S, ServiceProcesses, until
 
 from mapex.grid import FREE, OCCUPIED
+from services.bridges.watch import (
+    WATCHED_TOPICS,
+    Inbox,
+    WatchState,
+    apply_payloads,
+    apply_teammates,
+    decode_topic,
+    run_cli,
+)
+from services.bridges.watch_render import FrameReel, render_frame, write_atomic
 from services.codec import ProtocolError
 from services.config import WatchConfig
 from services.keys import robot_key
@@ -33,16 +43,6 @@ from services.messages import (
     PoseMessage,
     StatusMessage,
 )
-from services.watch import (
-    WATCHED_TOPICS,
-    Inbox,
-    WatchState,
-    apply_payloads,
-    apply_teammates,
-    decode_topic,
-    run_cli,
-)
-from services.watch_render import FrameReel, render_frame, write_atomic
 
 SHAPE = (40, 50)
 PURPLE_RGB = (148, 103, 189)  # matplotlib's tab:purple, the first teammate's colour

@@ -24,9 +24,9 @@ from mapex.config import MetricsConfig
 from mapex.grid import UNKNOWN
 from mapex.metrics import building_footprint, occupied_iou
 from mapex.prediction.config import PredictorTrainingConfig
-from mapex.prediction.dataset import SnapshotSet, snapshot_probabilities, source_shares
 from mapex.prediction.network import LamaGenerator, encode_observed
 from mapex.prediction.weights import load_member, set_logit_bias
+from mapex.training.dataset import SnapshotSet, snapshot_probabilities, source_shares
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""A run's updates (services.follow) as the messages of its ROS 2 and Foxglove topics.
+"""A run's updates (services.bridges.follow) as the messages of its ROS 2 and Foxglove topics.
 
 The one translation `services.ros2` (live, over rmw_zenoh) and `services.record` (MCAP)
 share: maps, poses and paths become `mapex.interop.topics.Outgoing` messages in the run's
@@ -18,8 +18,8 @@ from collections.abc import Callable
 
 from mapex.interop.ros_messages import MapFrame
 from mapex.interop.topics import Outgoing, RunTopics, ros_token
+from services.bridges.follow import FINAL_STATES, Update
 from services.config import Ros2Config
-from services.follow import FINAL_STATES, Update
 from services.messages import MapMessage
 
 log = logging.getLogger("services.ros_translate")

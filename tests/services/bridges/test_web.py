@@ -35,8 +35,10 @@ from up_processes import UpProcess
 
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
 from mapex.worlds import load_world
+from services.bridges.follow import Update
+from services.bridges.web import WebView, check_host, host_header_allowed, is_loopback_host, run_cli
+from services.bridges.web_state import EventClient, MapThrottle, ViewState, encode_update, sse_frame
 from services.config import WebConfig
-from services.follow import Update
 from services.keys import robot_key, run_key
 from services.messages import (
     FrontiersMessage,
@@ -48,8 +50,6 @@ from services.messages import (
     StatusMessage,
     WorldInfo,
 )
-from services.web import WebView, check_host, host_header_allowed, is_loopback_host, run_cli
-from services.web_state import EventClient, MapThrottle, ViewState, encode_update, sse_frame
 
 SHAPE = (30, 40)
 START_DEADLINE_S = 60.0  # a cold interpreter (zenoh, numpy) on a shared 2-core machine

@@ -16,9 +16,9 @@ import zenoh
 
 from mapex.interop.ros_messages import MissingExtraError
 from mapex.interop.topics import ChannelMessage, Outgoing, channel_messages
+from services.bridges.follow import RunFollower
+from services.bridges.ros_translate import RunTranslator
 from services.config import Ros2Config
-from services.follow import RunFollower
-from services.ros_translate import RunTranslator
 
 FOXGLOVE_DEFAULT_PORT = 8765  # the Foxglove app's default WebSocket port
 

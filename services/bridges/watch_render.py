@@ -1,7 +1,7 @@
 """The pure part of `services.watch`: one robot's latest messages drawn as a PNG, GIF frames.
 
 No Zenoh here: `render_figure`/`render_frame` draw whatever state object carries the fields of
-`WatchView` (`services.watch.WatchState` does), `FrameReel` keeps downscaled frames for the
+`WatchView` (`services.bridges.watch.WatchState` does), `FrameReel` keeps downscaled frames for the
 animated GIF, and `write_atomic` writes a file readers never see half-written. Kept apart so
 outside tools and tests can render a state without opening a session.
 """

@@ -6,7 +6,7 @@ import pytest
 from mapex.grid import FREE, UNKNOWN
 from mapex.prediction.base import EnsemblePrediction
 from mapex.prediction.config import PredictorEvaluationConfig
-from mapex.prediction.evaluate import (
+from mapex.training.evaluate import (
     CellScores,
     SnapshotScore,
     auroc,
@@ -133,14 +133,14 @@ def test_local_ceiling_is_perfect_near_the_known_map_and_free_beyond():
 def test_a_missing_map_is_a_one_line_error(tmp_path, capsys):
     assert main(["--maps", str(tmp_path / "nowhere")]) == 2
     error = capsys.readouterr().err.strip()
-    assert error.startswith("mapex.prediction.evaluate: error:") and "\n" not in error
+    assert error.startswith("mapex.training.evaluate: error:") and "\n" not in error
 
 
 def test_a_weights_folder_without_weights_is_a_one_line_error(tmp_path, capsys):
     assert main(["--weights", str(tmp_path)]) == 2
     error = capsys.readouterr().err.strip()
     assert error == (
-        f"mapex.prediction.evaluate: error: no weights file {tmp_path / 'g.pt'} "
+        f"mapex.training.evaluate: error: no weights file {tmp_path / 'g.pt'} "
         "(train with python -m mapex.prediction.train)"
     )
 

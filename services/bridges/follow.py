@@ -1,17 +1,13 @@
 """Follow every robot of one run, or of every run, for the outside-tool bridges.
 
-The ROS 2 bridge (`services.ros2`), the MCAP recorder (`services.record`) and the browser
-view (`services.web`) all need the same thing: each robot's maps, pose, path, goal,
-frontiers, metrics and status as they are published, plus each run's world info (shape and
-resolution), for runs that start after the follower did too. `RunFollower` subscribes with
-wildcards (`mapex/@v1/<run or *>/*/<topic>`), asks once with a `get` for what was published
-before it joined (the planner's and world's latest frames), decodes on Zenoh's threads and
-hands `Update`s to one consumer thread, so a sink never needs a lock. Updates of one key
-come in the order they were put; updates of different keys may not (Zenoh delivers each
-key's samples on its own), so compare steps per topic, never across topics.
-
-A payload that does not decode, or a key that is not a MapEx v1 key, is dropped with one
-log line and nothing else changes.
+The ROS 2 bridge, the MCAP recorder and the browser view all need each robot's maps, pose,
+path, goal, frontiers, metrics and status as they are published, plus each run's world
+info, for runs that start later too. `RunFollower` subscribes with wildcards
+(`mapex/@v1/<run or *>/*/<topic>`), asks once with a `get` for what was published before it
+joined, decodes on Zenoh's threads and hands `Update`s to one consumer thread, so a sink
+never needs a lock. Compare steps per topic, never across topics (docs/protocol.md). A
+payload that does not decode, or a key that is not a MapEx v1 key, is dropped with one log
+line.
 """
 
 from __future__ import annotations

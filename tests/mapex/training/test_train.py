@@ -7,16 +7,16 @@ import pytest
 import torch
 from tiny_training import PROCEDURAL_ONLY, SMALL, TINY, tiny_overrides, tiny_snapshots
 
-import mapex.prediction.train as train
+import mapex.training.train as train
 from mapex.config import ConfigError, apply_overrides
 from mapex.prediction.config import PredictorTrainingConfig
-from mapex.prediction.dataset import (
+from mapex.prediction.network import OUTSIDE_MAP
+from mapex.prediction.weights import MEMBER_NAMES, WeightsError, load_member, read_metadata
+from mapex.training.dataset import (
     CropSampler,
     SnapshotSet,
     training_world_specs,
 )
-from mapex.prediction.network import OUTSIDE_MAP
-from mapex.prediction.weights import MEMBER_NAMES, WeightsError, load_member, read_metadata
 from mapex.worlds import World, load_world
 from mapex.worlds.data import HOUSEEXPO_PLANS, IPA_DIR
 
@@ -195,7 +195,7 @@ def test_by_source_without_a_members_source_is_refused_before_any_work(tmp_path,
     )
     error = capsys.readouterr().err.strip().splitlines()
     assert status == 2 and error == [
-        "mapex.prediction.train: error: g1 trains on houseexpo, but no training world comes "
+        "mapex.training.train: error: g1 trains on houseexpo, but no training world comes "
         "from there (have: procedural): give those maps or other sources"
     ]
 
@@ -332,7 +332,7 @@ def test_mean_state_dict_averages_floats_and_keeps_counters():
 def test_impossible_schedules_are_one_line_errors(setting, message, tmp_path, capsys):
     status = train.main(["--out", str(tmp_path), *PROCEDURAL_ONLY, "--set", setting])
     error = capsys.readouterr().err.strip().splitlines()
-    assert status == 2 and error == [f"mapex.prediction.train: error: {message}"]
+    assert status == 2 and error == [f"mapex.training.train: error: {message}"]
 
 
 def _wall_crops() -> tuple[torch.Tensor, torch.Tensor]:
@@ -398,7 +398,7 @@ def test_members_without_g_are_refused_before_any_work(tmp_path, capsys):
     status = train.main(["--members", "g2,g3", "--out", str(tmp_path), *PROCEDURAL_ONLY])
     error = capsys.readouterr().err.strip().splitlines()
     assert status == 2 and error == [
-        "mapex.prediction.train: error: g2, g3 would start from G's weights, "
+        "mapex.training.train: error: g2, g3 would start from G's weights, "
         f"but there is no {tmp_path / 'g-base.pt'}: train g too (--members g,g1,g2,g3) "
         "or --set members_from_main=false"
     ]  # one line, and no snapshots were collected
@@ -409,7 +409,7 @@ def test_too_few_worlds_for_the_members_are_refused_before_any_work(tmp_path, ca
     status = train.main(argv)
     error = capsys.readouterr().err.strip().splitlines()
     assert status == 2 and error == [
-        "mapex.prediction.train: error: 2 training world(s), but g, g1, g2, g3 need at least 3: "
+        "mapex.training.train: error: 2 training world(s), but g, g1, g2, g3 need at least 3: "
         "raise procedural_worlds or give the KTH maps"
     ]
 
@@ -449,6 +449,6 @@ def test_a_validation_map_named_in_ipa_maps_is_refused_before_any_work(tmp_path,
     argv = ["--out", str(tmp_path), *PROCEDURAL_ONLY, "--set", "use_ipa=true"]
     assert train.main([*argv, "--set", "ipa_maps=office_a,NLB"]) == 2
     assert capsys.readouterr().err.strip() == (
-        "mapex.prediction.train: error: NLB is a validation map (mapex.worlds.data): "
+        "mapex.training.train: error: NLB is a validation map (mapex.worlds.data): "
         "never train on it"
     )

@@ -1,68 +1,54 @@
-"""Team methods: a single-robot frontier scorer made to coordinate through claims.
+"""Methods that coordinate a team through claims (docs/algorithms.md#teams).
 
-`TeamScorer` wraps any `FrontierScorer` (docs/algorithms.md#teams):
-
-* `mapex_team`: MapEx's gain without the cells teammates have claimed (the visible sets of
-  their goals), per unit distance; it claims its goal's visible set in turn;
-* `mapex_plus_team`: the same discount on this project's best single-robot scorer;
-* `nearest_team`: the nearest frontier not within `team.goal_exclusion_cells` (2 m) of a
-  teammate's goal (the classic baseline); it claims its goal only;
-* `mapex_independent`: MapEx on the shared map with no claims (the ablation that shows
-  what coordination buys).
-
-Frontiers a wrapper rules out score -inf, so they are tried last, not never: a robot with
-nothing else left still goes there.
+`Coordinated` wraps a single-robot `FrontierScorer`: `mapex_team` and `mapex_plus_team`
+discount the cells teammates have claimed and claim their goal's visible set in turn;
+`nearest_team` keeps away from teammates' goals and claims its goal only. Frontiers a
+wrapper rules out score -inf, so they are tried last, not never. Any other method in a
+team runs independently on the shared map; `mapex_independent` is MapEx under the name
+the team ablation is reported by.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import replace
+from typing import ClassVar
 
 import numpy as np
 
-from mapex.config import ConfigError, ExplorationConfig
+from mapex.config import ExplorationConfig
 from mapex.grid import UNKNOWN, Cell
-from mapex.methods import METHODS
 from mapex.methods.base import FrontierScorer, PlanningContext
+from mapex.methods.claims import Claim, claimed_cells
 from mapex.methods.goals import Goal
 from mapex.methods.information_gain import MapEx, known_walls
 from mapex.methods.nearest import NearestFrontier
 from mapex.methods.path_gain import MapExPlus
 from mapex.navigation import plan_path
-from mapex.team.claims import Claim, claimed_cells
 from mapex.visibility import visible_mask
 
 
-class TeamScorer(FrontierScorer):
-    """`inner` with teammates' claims taken into account (module doc).
+class Coordinated(FrontierScorer):
+    """`scorer`'s scores with teammates' claims taken into account (module doc).
 
-    The team loop sets `teammates` (their current claims) before each re-plan; after one,
-    `claim_of(robot, t)` is what this robot tells them (None when it does not claim).
+    The team sets `teammates` (their current claims) before each re-plan; after one,
+    `claim_of(robot, t)` is what this robot tells them.
     """
 
-    def __init__(
-        self,
-        config: ExplorationConfig,
-        inner: FrontierScorer,
-        name: str,
-        discount_claims: bool = False,
-        avoid_claimed_goals: bool = False,
-    ) -> None:
-        super().__init__(config)
-        self.inner = inner
-        self.name = name
-        self.uses_prediction = inner.uses_prediction
-        self.replan_every_steps = inner.replan_every_steps
-        self.discount_claims = discount_claims
-        self.avoid_claimed_goals = avoid_claimed_goals
-        self.teammates: list[Claim] = []
-        self._last: tuple[Goal, float, PlanningContext] | None = None
+    scorer: ClassVar[type[FrontierScorer]]  # the single-robot method it wraps
+    discount_claims: ClassVar[bool] = False  # claimed cells are worth nothing here
+    avoid_claimed_goals: ClassVar[bool] = False  # frontiers near claimed goals go last
+    coordinates = True
+    made_for_teams = True
 
-    @property
-    def claims(self) -> bool:
-        """Whether this method tells teammates its goals."""
-        return self.discount_claims or self.avoid_claimed_goals
+    def __init_subclass__(cls, **kwargs: object) -> None:
+        super().__init_subclass__(**kwargs)
+        cls.uses_prediction = cls.scorer.uses_prediction
+        cls.replan_every_steps = cls.scorer.replan_every_steps
+
+    def __init__(self, config: ExplorationConfig) -> None:
+        super().__init__(config)
+        self.inner = self.scorer(config)
+        self._last: tuple[Goal, float, PlanningContext] | None = None
 
     def score(self, context: PlanningContext) -> np.ndarray:
         if self.discount_claims and self.teammates:
@@ -82,9 +68,8 @@ class TeamScorer(FrontierScorer):
         return goal
 
     def claim_of(self, robot: int, t: int) -> Claim | None:
-        """The claim of the last goal chosen, or None (no goal, or a method that does not
-        claim)."""
-        if not self.claims or self._last is None:
+        """The claim of the last goal chosen, or None (no goal)."""
+        if self._last is None:
             return None
         goal, score, context = self._last
         cell = (int(goal.cell[0]), int(goal.cell[1]))
@@ -127,36 +112,26 @@ class TeamScorer(FrontierScorer):
         return seen & (context.observed == UNKNOWN)
 
 
-def _team(
-    inner: type[FrontierScorer], name: str, **options: bool
-) -> Callable[[ExplorationConfig], TeamScorer]:
-    return lambda config: TeamScorer(config, inner(config), name, **options)
+class MapExTeam(Coordinated):
+    name = "mapex_team"
+    scorer = MapEx
+    discount_claims = True
 
 
-TEAM_METHODS: dict[str, Callable[[ExplorationConfig], TeamScorer]] = {
-    "mapex_team": _team(MapEx, "mapex_team", discount_claims=True),
-    "mapex_plus_team": _team(MapExPlus, "mapex_plus_team", discount_claims=True),
-    "nearest_team": _team(NearestFrontier, "nearest_team", avoid_claimed_goals=True),
-    "mapex_independent": _team(MapEx, "mapex_independent"),
-}
+class MapExPlusTeam(Coordinated):
+    name = "mapex_plus_team"
+    scorer = MapExPlus
+    discount_claims = True
 
 
-ALL_METHODS: tuple[str, ...] = (*sorted(METHODS), *sorted(TEAM_METHODS))  # --method choices
+class NearestTeam(Coordinated):
+    name = "nearest_team"
+    scorer = NearestFrontier
+    avoid_claimed_goals = True
 
 
-def make_team_method(name: str, config: ExplorationConfig) -> TeamScorer:
-    """The team method called `name` (ValueError with the choices otherwise)."""
-    if name not in TEAM_METHODS:
-        raise ValueError(f"unknown team method '{name}' (choose from: {', '.join(TEAM_METHODS)})")
-    return TEAM_METHODS[name](config)
+class MapExIndependent(MapEx):
+    """MapEx, named for the team ablation: what coordination buys over none."""
 
-
-def check_team_flags(method: str, robots: int) -> bool:
-    """Whether the run is a team's; ConfigError (one line) for a bad --robots/--method pair."""
-    if robots < 1:
-        raise ConfigError(f"--robots must be at least 1 (got {robots})")
-    if robots > 1 and method not in TEAM_METHODS:
-        raise ConfigError(
-            f"--robots {robots} needs a team method ({', '.join(TEAM_METHODS)}), not {method}"
-        )
-    return method in TEAM_METHODS
+    name = "mapex_independent"
+    made_for_teams = True

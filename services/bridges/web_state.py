@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from services.bridges.follow import Update
 from services.config import DEFAULT_WEB, WebConfig
-from services.follow import Update
 from services.messages import (
     FrontiersMessage,
     GoalMessage,
@@ -87,7 +87,8 @@ _ENCODERS: dict[type[Message], Callable[[Any], dict[str, Any]]] = {
 
 def encode_update(update: Update) -> dict[str, Any]:
     """The JSON-able event of an update: run, robot, topic, then the message's fields (the
-    table of the module docstring). Non-finite frontier scores become null."""
+    table of docs/protocol.md#the-browser-view-http-routes-and-sse-events). Non-finite
+    frontier scores become null."""
     head = {"run": update.run, "robot": update.robot, "topic": update.topic}
     return {**head, **_ENCODERS[type(update.message)](update.message)}
 
@@ -197,7 +198,7 @@ class ViewState:
         return True
 
     def snapshot(self) -> dict[str, Any]:
-        """The `/state` document (see the module docstring)."""
+        """The `/state` document (docs/protocol.md#the-browser-view-http-routes-and-sse-events)."""
         return {
             "followed_run": self.followed_run,
             "runs": {name: self._run_snapshot(run) for name, run in self.runs.items()},
