@@ -42,7 +42,10 @@ class EpochPrediction:
         if members not in self._predictions:
             region = known_region(self._epoch_map, self.margin_cells)
             self._predictions[members] = self.predictor.predict(self._epoch_map, region, members)
-        return self._predictions[members].with_known(observed)
+        prediction = self._predictions[members]
+        if np.array_equal(observed, self._epoch_map):  # nothing known since: as it is
+            return prediction
+        return prediction.with_known(observed)
 
 
 class TeammateExplorer(Explorer):

@@ -176,6 +176,15 @@ def test_one_independent_robot_is_the_single_robot_run(world, predictor):
     assert team.curves.coverage == alone.curves.coverage and team.overlap == 0.0
 
 
+def test_a_method_that_does_not_coordinate_runs_in_a_team_as_mapex_independent(world, predictor):
+    pair = run_episode(world, "mapex", predictor, 2, seed=3, config=CONFIG, robots=2)
+    named = run_episode(world, "mapex_independent", predictor, 2, seed=3, config=CONFIG, robots=2)
+    for a, b in zip(pair.trajectories, named.trajectories, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert pair.curves.coverage == named.curves.coverage and pair.robots == 2
+    assert pair.is_team and named.is_team
+
+
 def test_every_robot_holds_the_merged_map_and_overlap_counts_shared_cells(predictor):
     world = load_world("generated:0")
     result = run_episode(world, "mapex_team", predictor, [0], robots=2, seed=0, config=CONFIG)
