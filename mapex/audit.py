@@ -31,6 +31,8 @@ from mapex.config import (
     add_override_argument,
     apply_overrides,
     argparse_type,
+    check_process_count,
+    parse_seed,
 )
 from mapex.episode import run_episode
 from mapex.exit_codes import EXIT_FAILED, EXIT_USAGE
@@ -85,7 +87,7 @@ def audit_run(
     world_spec: str, start: Cell, method: str, config: ExplorationConfig, predictor: str
 ) -> AuditRow:
     """Run one episode and judge how it ended."""
-    world = load_world(world_spec)
+    world = load_world(world_spec, config.world.max_cells)
     ensemble = make_predictor(predictor) if METHODS[method].uses_prediction else None
     result = run_episode(world, method, ensemble, start, 0, config)
     reachable = reachable_valid_cells(world, start, config)
@@ -178,7 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--methods", type=argparse_type(parse_method_list),
                         default=list(DEFAULT_METHODS), help="comma-separated")  # fmt: skip
     parser.add_argument("--steps", type=int, default=1000, help="time budget T")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the start cells")
+    parser.add_argument("--seed", type=argparse_type(parse_seed), default=0,
+                        help="seed of the start cells")  # fmt: skip
     parser.add_argument("--max-unknown", type=float, default=0.02,
                         help="flag early ends with more reachable cells unknown")  # fmt: skip
     parser.add_argument("--predictor", default=DEFAULT_PREDICTOR, choices=sorted(PREDICTORS),
@@ -194,7 +197,7 @@ def plan_jobs(args: argparse.Namespace, config: ExplorationConfig) -> list[tuple
     """(world spec, start, method, config, predictor) for every map, start and method."""
     jobs = []
     for spec in args.maps:
-        world = load_world(spec)
+        world = load_world(spec, config.world.max_cells)
         starts = spread_starts(world, args.starts, config.world.start_clearance_cells, args.seed)
         jobs += [(spec, s, m, config, args.predictor) for s in starts for m in args.methods]
     return jobs
@@ -212,6 +215,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--out {args.out}: no folder {args.out.parent}")
     try:
         config = apply_overrides(ExplorationConfig(steps=args.steps), args.overrides)
+        check_process_count(args.jobs, f"--jobs {args.jobs}")
         jobs = plan_jobs(args, config)
         rows = run_audit(jobs, args.jobs, not args.no_progress)
         rows = [flag(row, args.max_unknown) for row in rows]

@@ -15,6 +15,8 @@ from mapex.config import (
     ExplorationConfig,
     add_override_argument,
     apply_overrides,
+    argparse_type,
+    parse_seed,
 )
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
@@ -68,7 +70,12 @@ def build_parser() -> argparse.ArgumentParser:
     add_inference_arguments(run)
     add_budget_arguments(run)
     add_start_argument(run, 0, "start pose (default 0)")
-    run.add_argument("--seed", type=int, default=0, help="random seed (UPEN's RRT); default: 0")
+    run.add_argument(
+        "--seed",
+        type=argparse_type(parse_seed),
+        default=0,
+        help="random seed (UPEN's RRT), an integer >= 0; default: 0",
+    )
     run.add_argument(
         "--out", type=Path, default=None, help="results folder; default: results/<run name>"
     )
@@ -128,11 +135,11 @@ def run_command(args: argparse.Namespace) -> int:
         destination,
         write_results,
     )
-    from mapex.team.starts import check_team_size, team_start_cells
+    from mapex.team.starts import team_start_cells
 
-    check_team_size(args.robots)
     config = apply_overrides(ExplorationConfig(until_iou=args.until_iou), args.overrides)
-    world = load_world(args.world).check_size(config.world.max_cells)
+    config.team.check_robots(args.robots)
+    world = load_world(args.world, config.world.max_cells)
     config = replace(config, steps=resolve_steps(args.steps, world))
     team_start_cells(world, [args.start], args.robots, config)  # a bad start: no work
     check_destination(args.out)

@@ -12,47 +12,259 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
+import math
+import numbers
+import os
 import types
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal, TypeVar
+from typing import Any, ClassVar, Literal, TypeVar
 
 StopRule = Literal["accumulate", "threshold"]
 MAX_RAYS = 100_000  # a scan's rays (the wire carries one uint16 length per ray)
 MAX_RANGE_CELLS = 65_535  # the longest ray a uint16 length holds
+MAX_SEED = 2**32 - 1  # seeds (`--seed`, `--seeds`, `seed=`): what every random generator takes
+# processes a command may start (planners, worlds, workers, audit jobs): at most this many per
+# CPU core, and no more than the machine's memory holds at this much each (a planner on a
+# default world peaks at about 450 MB, most of it torch and numba)
+MAX_PROCESSES_PER_CPU = 8
+PROCESS_MEMORY_BYTES = 512 * 2**20
+RANGE = "range"  # field metadata key of a field's `Range` (see `ranged`)
 T = TypeVar("T")
 
 
-@dataclass(frozen=True)
-class SensorConfig:
-    """The 2D LiDAR of docs/algorithms.md#sensor."""
+class ConfigError(ValueError):
+    """A configuration override that names no field or has a value of the wrong type."""
 
-    n_rays: int = 2500
-    range_cells: int = 200  # 20 m
+
+@dataclass(frozen=True)
+class Range:
+    """The values a numeric field (or each item of a tuple field) may take: `low` and
+    `high` inclusive (None: unbounded), `low` excluded when `low_open` (a duration: > 0),
+    `high` when `high_open`. `text` replaces the generated wording ("must be at least 1")."""
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    text: str | None = None
+
+    def holds(self, value: float) -> bool:
+        """Whether `value` is in the range (NaN never is)."""
+        if math.isnan(value):
+            return False
+        if self.low is not None and (value <= self.low if self.low_open else value < self.low):
+            return False
+        return self.high is None or (value < self.high if self.high_open else value <= self.high)
+
+    def __str__(self) -> str:
+        if self.text is not None:
+            return self.text
+        if self.low is not None and self.high is not None:
+            opening, closing = "(["[not self.low_open], ")]"[not self.high_open]
+            return f"in {opening}{self.low}, {self.high}{closing}"
+        if self.low is not None:
+            return f"{'>' if self.low_open else '>='} {self.low}"
+        return f"{'<' if self.high_open else '<='} {self.high}"
+
+
+def ranged(
+    default: T,
+    low: float | None = None,
+    high: float | None = None,
+    *,
+    low_open: bool = False,
+    high_open: bool = False,
+    text: str | None = None,
+) -> T:
+    """A dataclass field with `default` whose values (or tuple items) must lie in
+    [low, high] (`Range`); `Checked.__post_init__` enforces it."""
+    return field(default=default, metadata={RANGE: Range(low, high, low_open, high_open, text)})
+
+
+def positive(default: T) -> T:
+    """A field above 0 (a duration, a weight that divides): `ranged(default, 0, low_open=True)`."""
+    return ranged(default, 0, low_open=True)
+
+
+def share(default: T) -> T:
+    """A field in [0, 1] (a probability, a fraction, a level)."""
+    return ranged(default, 0, 1)
+
+
+class Checked:
+    """The base of every configuration dataclass: building one checks every field (type and
+    declared `Range`, finite numbers, `x_min <= x_max` pairs) and raises a one-line
+    ConfigError naming `SECTION.field`, so a bad `--set` stops a command before any work."""
+
+    SECTION: ClassVar[str] = ""  # the `--set` prefix of this dataclass's fields ("" at the top)
 
     def __post_init__(self) -> None:
-        if not 1 <= self.n_rays <= MAX_RAYS:
-            raise ConfigError(f"sensor.n_rays must be in 1..{MAX_RAYS}, got {self.n_rays}")
-        if not 1 <= self.range_cells <= MAX_RANGE_CELLS:
+        check_fields(self)
+
+
+def check_fields(config: Any) -> None:
+    """ConfigError (one line) for the first field of the dataclass `config` whose value is
+    not of its annotated type, lies outside its `Range` (field metadata), is a non-finite
+    float, or is a `..._min` above its `..._max` (or `min_...` above `max_...`)."""
+    prefix = f"{config.SECTION}." if getattr(config, "SECTION", "") else ""
+    for each, hint in _field_hints(type(config)):
+        value = getattr(config, each.name)
+        name = f"{prefix}{each.name}"
+        expected = _type_problem(value, hint)
+        if expected is not None:
+            raise ConfigError(f"{name} must be {expected}, got {value!r}")
+        bounds = each.metadata.get(RANGE)
+        for number in _numbers(value):
+            if bounds is not None and not bounds.holds(number):
+                raise ConfigError(f"{name} must be {bounds}, got {_shown(value)}")
+            if not math.isfinite(number):
+                raise ConfigError(f"{name} must be a finite number, got {_shown(value)}")
+    for low_name, high_name in _min_max_pairs(type(config)):
+        low, high = getattr(config, low_name), getattr(config, high_name)
+        if low is not None and high is not None and low > high:
             raise ConfigError(
-                f"sensor.range_cells must be in 1..{MAX_RANGE_CELLS}, got {self.range_cells}"
+                f"{prefix}{low_name} ({low}) must not exceed {prefix}{high_name} ({high})"
             )
 
 
+@functools.cache
+def _field_hints(cls: type) -> tuple[tuple[dataclasses.Field, Any], ...]:
+    hints = typing.get_type_hints(cls)
+    return tuple((each, hints[each.name]) for each in dataclasses.fields(cls))
+
+
+@functools.cache
+def _min_max_pairs(cls: type) -> tuple[tuple[str, str], ...]:
+    names = [each.name for each in dataclasses.fields(cls)]
+    pairs = []
+    for name in names:
+        words = name.split("_")
+        if "min" in words:
+            other = "_".join("max" if word == "min" else word for word in words)
+            if other in names:
+                pairs.append((name, other))
+    return tuple(pairs)
+
+
+def _shown(value: Any) -> str:
+    return ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
+
+
+def _numbers(value: Any) -> list[float]:
+    """The numbers a checked value holds: itself, or a tuple's numeric items (recursively)."""
+    if isinstance(value, tuple):
+        return [number for item in value for number in _numbers(item)]
+    if isinstance(value, numbers.Real) and not isinstance(value, bool):
+        return [value]
+    return []
+
+
+def _type_problem(value: Any, hint: Any) -> str | None:
+    """What `value` should be when it is not of the annotated type `hint` (else None)."""
+    origin = typing.get_origin(hint)
+    if origin is Literal:
+        choices = typing.get_args(hint)
+        return None if value in choices else f"one of {', '.join(map(repr, choices))}"
+    if origin in (typing.Union, types.UnionType):
+        arms = typing.get_args(hint)
+        if value is None and type(None) in arms:
+            return None
+        problems = [_type_problem(value, arm) for arm in arms if arm is not type(None)]
+        return None if None in problems else " or ".join(p for p in problems if p)
+    if origin is tuple:
+        args = typing.get_args(hint)
+        if not isinstance(value, tuple):
+            return "a tuple (comma-separated values)"
+        items = args[:1] * len(value) if len(args) == 2 and args[1] is Ellipsis else args
+        if len(items) != len(value):
+            return f"{len(items)} comma-separated values"
+        problems = [_type_problem(item, each) for item, each in zip(value, items, strict=True)]
+        found = next((p for p in problems if p is not None), None)
+        return None if found is None else f"a tuple of items each {found}"
+    if hint is bool:
+        return None if isinstance(value, bool) else "true or false"
+    if hint is int:
+        integral = isinstance(value, numbers.Integral) and not isinstance(value, bool)
+        return None if integral else "an integer"
+    if hint is float:
+        real = isinstance(value, numbers.Real) and not isinstance(value, bool)
+        return None if real else "a number"
+    if hint is str:
+        return None if isinstance(value, str) else "a string"
+    if isinstance(hint, type):
+        return None if isinstance(value, hint) else f"a {hint.__name__}"
+    return None
+
+
+def usable_cpus() -> int:
+    """The CPU cores this process may run on (its affinity mask where the OS has one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return os.cpu_count() or 1
+
+
+def physical_memory_bytes() -> int:
+    """The machine's physical memory (0 where the OS does not say)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return 0
+
+
+def check_process_count(
+    count: int,
+    what: str,
+    per_cpu: int = MAX_PROCESSES_PER_CPU,
+    memory_each: int = PROCESS_MEMORY_BYTES,
+    settings: str = "",
+) -> None:
+    """ConfigError (one line) when `count` processes, asked for by `what` (the flags), are
+    more than this machine holds: `per_cpu` per usable CPU core, and its memory at
+    `memory_each` bytes each. `settings` names the `--set` items that raise the caps."""
+    cpus, memory = usable_cpus(), physical_memory_bytes()
+    by_cpu = cpus * per_cpu
+    cap = max(1, min(by_cpu, memory // memory_each if memory else by_cpu))
+    if count > cap:
+        raise ConfigError(
+            f"{what}: {count} processes, more than this machine holds ({cap}: {per_cpu} "
+            f"per CPU x {cpus} CPUs, {memory / 2**30:.0f} GiB at {memory_each / 2**20:.0f} MiB "
+            f"each" + (f"; {settings} raise the caps)" if settings else ")")
+        )
+
+
+def parse_seed(text: str) -> int:
+    """A seed from the command line: an integer in 0..MAX_SEED (ValueError, one line)."""
+    try:
+        seed = int(text)
+    except ValueError:
+        raise ValueError(f"{text!r} is not a seed (an integer in 0..{MAX_SEED})") from None
+    if not 0 <= seed <= MAX_SEED:
+        raise ValueError(f"seed {seed} is out of range: seeds are integers in 0..{MAX_SEED}")
+    return seed
+
+
 @dataclass(frozen=True)
-class MotionConfig:
+class SensorConfig(Checked):
+    """The 2D LiDAR of docs/algorithms.md#sensor."""
+
+    SECTION = "sensor"
+    n_rays: int = ranged(2500, 1, MAX_RAYS)
+    range_cells: int = ranged(200, 1, MAX_RANGE_CELLS)  # 20 m
+
+
+@dataclass(frozen=True)
+class MotionConfig(Checked):
     """Robot motion per timestep (docs/algorithms.md#sensor)."""
 
-    cells_per_step: int = 3
-
-    def __post_init__(self) -> None:
-        if self.cells_per_step < 1:
-            raise ConfigError(f"motion.cells_per_step must be >= 1, got {self.cells_per_step}")
+    SECTION = "motion"
+    cells_per_step: int = ranged(3, 1, MAX_RANGE_CELLS)
 
 
 @dataclass(frozen=True)
-class FrontierConfig:
+class FrontierConfig(Checked):
     """Frontier clustering (docs/algorithms.md#frontiers): clusters of
     `max_dropped_cluster_cells` or fewer go.
 
@@ -61,178 +273,165 @@ class FrontierConfig:
     a wall corner) are tried too, as a last resort.
     """
 
-    max_dropped_cluster_cells: int = 10
+    SECTION = "frontier"
+    max_dropped_cluster_cells: int = ranged(10, 0)
     small_clusters_last: bool = True
 
 
 @dataclass(frozen=True)
-class NavigationConfig:
+class NavigationConfig(Checked):
     """Planning cost map, A* and the goal-keeping rule (docs/algorithms.md#navigation)."""
 
-    wall_inflation_cells: int = 1  # 3x3 inflation of known walls
-    wall_clearance_cells: float = 5.0  # distance-transform cost fades out at this distance
-    wall_cost_weight: float = 2.0  # extra cost per cell at the wall, linearly less to 0
-    goal_reached_cells: float = 10.0  # 1 m
-    goal_unknown_radius_cells: float = 10.0  # goal dropped when no unknown cell within 1 m
+    SECTION = "navigation"
+    wall_inflation_cells: int = ranged(1, 0)  # 3x3 inflation of known walls
+    # distance-transform cost fades out at this distance
+    wall_clearance_cells: float = positive(5.0)
+    wall_cost_weight: float = ranged(2.0, 0)  # extra cost per cell at the wall, linearly less to 0
+    goal_reached_cells: float = ranged(10.0, 0)  # 1 m
+    # goal dropped when no unknown cell within 1 m
+    goal_unknown_radius_cells: float = ranged(10.0, 0)
 
 
 @dataclass(frozen=True)
-class VisibilityConfig:
+class VisibilityConfig(Checked):
     """Frontier visibility raycasts of docs/algorithms.md#methods."""
 
-    n_rays: int = 250
-    range_cells: int = 200
+    SECTION = "visibility"
+    n_rays: int = ranged(250, 1, MAX_RAYS)
+    range_cells: int = ranged(200, 1, MAX_RANGE_CELLS)
     stop_rule: StopRule = "threshold"
-    epsilon: float = 0.8  # stopping level of the probabilistic raycast
-    occupied_threshold: float = 0.5  # thresholded P_t: p >= this blocks
-    no_visibility_radius_cells: int = 50  # 5 m disc of the No Visibility ablation
+    epsilon: float = ranged(0.8, 0, 1, low_open=True)  # stopping level of the probabilistic raycast
+    occupied_threshold: float = share(0.5)  # thresholded P_t: p >= this blocks
+    no_visibility_radius_cells: int = ranged(50, 0)  # 5 m disc of the No Visibility ablation
 
 
 @dataclass(frozen=True)
-class IgHectorConfig:
+class IgHectorConfig(Checked):
     """IG-Hector: utility = gain - path_cost_weight * exploration-transform cost."""
 
-    path_cost_weight: float = 1.0
+    SECTION = "ig_hector"
+    path_cost_weight: float = ranged(1.0, 0)
 
 
 @dataclass(frozen=True)
-class PipeConfig:
+class PipeConfig(Checked):
     """pipe and pw_nbv (docs/algorithms.md#pipe): their `pathwise_index`."""
 
-    path_sample_cells: int = 3  # a viewpoint on every 3rd cell of the path
-
-    def __post_init__(self) -> None:
-        if self.path_sample_cells < 1:
-            raise ConfigError(f"pipe.path_sample_cells must be >= 1, got {self.path_sample_cells}")
+    SECTION = "pipe"
+    path_sample_cells: int = ranged(3, 1)  # a viewpoint on every 3rd cell of the path
 
 
 @dataclass(frozen=True)
-class PathGainConfig:
+class PathGainConfig(Checked):
     """mapex_plus: gain along the path to a frontier, per unit path cost
     (docs/algorithms.md#beyond-the-paper). Chosen on generated worlds and the trainable KTH
     floors only."""
 
+    SECTION = "path_gain"
     # beta in [0, 1]: a cell's worth is (1 - beta) x 1 (expected new area) + beta x V_t / mean
     # V_t over unknown cells (ensemble disagreement); 0 = area only, 1 = variance only
-    variance_weight: float = 0.5
-    path_sample_cells: int = 10  # one viewpoint every 1 m of path (plus the frontier)
-    top_k: int = 8  # frontiers (best frontier-only score) whose path gain is computed
+    variance_weight: float = share(0.5)
+    path_sample_cells: int = ranged(10, 1)  # one viewpoint every 1 m of path (plus the frontier)
+    top_k: int = ranged(8, 1)  # frontiers (best frontier-only score) whose path gain is computed
     # score = gain / (path cost + offset): an offset > 0 stops a tiny gain next to the robot
     # from outranking a large one a little further away (0 = plain gain per cell of path)
-    cost_offset_cells: float = 20.0  # 2 m
+    cost_offset_cells: float = ranged(20.0, 0)  # 2 m
     # the path cost divided by: "planner" (its wall-penalised cost) or "cells" (its length
     # in cells, as PIPE)
     cost_measure: Literal["planner", "cells"] = "planner"
     # re-plan every this many steps even while the goal still has unknown cells (0 = only
     # when the goal is reached or spent, as mapex): what the drive reveals can redirect it
-    replan_every_steps: int = 20
-
-    def __post_init__(self) -> None:
-        if not 0.0 <= self.variance_weight <= 1.0:
-            raise ConfigError(
-                f"path_gain.variance_weight must be in [0, 1], got {self.variance_weight}"
-            )
-        if self.path_sample_cells < 1:
-            raise ConfigError(
-                f"path_gain.path_sample_cells must be >= 1, got {self.path_sample_cells}"
-            )
-        if self.top_k < 1:
-            raise ConfigError(f"path_gain.top_k must be >= 1, got {self.top_k}")
-        if not self.cost_offset_cells >= 0.0:
-            raise ConfigError(
-                f"path_gain.cost_offset_cells must be >= 0, got {self.cost_offset_cells}"
-            )
-        if self.replan_every_steps < 0:
-            raise ConfigError(
-                f"path_gain.replan_every_steps must be >= 0, got {self.replan_every_steps}"
-            )
+    replan_every_steps: int = ranged(20, 0)
 
 
 @dataclass(frozen=True)
-class UpenConfig:
+class UpenConfig(Checked):
     """UPEN: RRT over non-occupied cells, best variance-sum path, re-plan every few steps."""
 
-    rrt_iterations: int = 300
-    rrt_step_cells: float = 8.0
-    replan_every_steps: int = 10
+    SECTION = "upen"
+    rrt_iterations: int = ranged(300, 1)
+    rrt_step_cells: float = positive(8.0)
+    replan_every_steps: int = ranged(10, 1)
 
 
 @dataclass(frozen=True)
-class MetricsConfig:
+class MetricsConfig(Checked):
     """Metrics of docs/algorithms.md#metrics."""
 
-    sample_every_steps: int = 50
-    tu_every_steps: int = 100
-    tu_goals: int = 100
-    footprint_margin_cells: int = 3
-    prediction_threshold: float = 0.5
-    snapshot_steps: tuple[int, ...] = (200, 500, 1000)  # observed + G maps kept for the report
+    SECTION = "metrics"
+    sample_every_steps: int = ranged(50, 1)
+    tu_every_steps: int = ranged(100, 1)
+    tu_goals: int = ranged(100, 1)
+    footprint_margin_cells: int = ranged(3, 0)
+    prediction_threshold: float = share(0.5)
+    # observed + G maps kept for the report
+    snapshot_steps: tuple[int, ...] = ranged((200, 500, 1000), 0)
     # the first step at which coverage and G's IoU reach each level is recorded (to the step)
-    reach_levels: tuple[float, ...] = (0.90, 0.95)
-
-    def __post_init__(self) -> None:
-        if self.sample_every_steps < 1:
-            raise ConfigError(
-                f"metrics.sample_every_steps must be >= 1, got {self.sample_every_steps}"
-            )
-        if not all(0.0 < level <= 1.0 for level in self.reach_levels):
-            raise ConfigError(f"metrics.reach_levels must be in (0, 1], got {self.reach_levels}")
+    reach_levels: tuple[float, ...] = ranged((0.90, 0.95), 0, 1, low_open=True)
 
 
 @dataclass(frozen=True)
-class WorldConfig:
-    """Start poses (docs/algorithms.md#worlds)."""
+class WorldConfig(Checked):
+    """Start poses (docs/algorithms.md#worlds), and the limits on what is read: a world's
+    cells and a file's bytes (`mapex.io_limits`)."""
 
-    start_clearance_cells: int = 3  # 0.3 m
+    SECTION = "world"
+    start_clearance_cells: int = ranged(3, 0)  # 0.3 m
     # worlds above this many cells are refused: a whole-map prediction grows with the area
     # (about 0.4 s per member for 50015847's 0.59 M cells on one CPU thread) and would miss
-    # the query timeout; the largest development map (IPA office_g) has 1.2 M
-    max_cells: int = 4_000_000
-
-    def __post_init__(self) -> None:
-        if self.max_cells < 1:
-            raise ConfigError(f"world.max_cells must be >= 1, got {self.max_cells}")
+    # the query timeout; the largest development map (IPA office_g) has 1.2 M. Map files are
+    # checked against it from their headers, before their data is read.
+    max_cells: int = ranged(4_000_000, 1)
+    # a file the project reads (a starts file, a configuration, a map's metadata, a run's
+    # metrics or curves) larger than this is refused before it is read; map arrays are held
+    # to max_cells instead
+    max_file_bytes: int = ranged(64 * 2**20, 1)
 
 
 @dataclass(frozen=True)
-class TeamConfig:
+class TeamConfig(Checked):
     """Several robots sharing one map (docs/algorithms.md#teams)."""
 
-    spacing_cells: int = 10  # default deployment: robots about 1 m apart near the start
-    goal_exclusion_cells: int = 20  # nearest_team: skip frontiers within 2 m of a teammate's goal
+    SECTION = "team"
+    spacing_cells: int = ranged(10, 1)  # default deployment: robots about 1 m apart near the start
+    # nearest_team: skip frontiers within 2 m of a teammate's goal
+    goal_exclusion_cells: int = ranged(20, 1)
     # a teammate's new claim makes a robot re-plan when it lies this close to its own goal
     # and scores better
-    claim_conflict_cells: int = 20
+    claim_conflict_cells: int = ranged(20, 1)
     # mapex_team / mapex_plus_team: also claim what the robot will see on its way, from
     # every k-th cell of its path to the goal (0: the goal's visible set only, issue #41's
     # first definition; 10 lowers two robots' overlap 0.720 -> 0.688, docs/results/teams.md)
-    claim_path_every_cells: int = 10
+    claim_path_every_cells: int = ranged(10, 0)
     # the team predicts on its map as it stood at the last multiple of this many steps, once
     # per such epoch for every robot re-planning in it (cells observed since are copied
     # through); 1: each re-plan predicts on the current map, as single-robot `mapex` (and
     # a team of one) does.
     # 10 cuts a 4-robot step through services.up from 2.6 x to 1.7 x one robot's, with two
     # robots' AUCs unchanged within noise (docs/results/teams.md)
-    prediction_epoch_steps: int = 10
+    prediction_epoch_steps: int = ranged(10, 1)
+    # the largest team: every robot is a planner process in the services, and each robot
+    # re-plans on the shared map (`--robots` above it is refused with one line)
+    max_robots: int = ranged(64, 1)
 
-    def __post_init__(self) -> None:
-        names = ("spacing_cells", "goal_exclusion_cells", "claim_conflict_cells")
-        for name in (*names, "prediction_epoch_steps"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"team.{name} must be >= 1, got {getattr(self, name)}")
-        if self.claim_path_every_cells < 0:
+    def check_robots(self, robots: int) -> None:
+        """ConfigError (one line) unless 1 <= `robots` <= `max_robots`."""
+        if robots < 1:
+            raise ConfigError(f"--robots must be at least 1 (got {robots})")
+        if robots > self.max_robots:
             raise ConfigError(
-                f"team.claim_path_every_cells must be >= 0, got {self.claim_path_every_cells}"
+                f"--robots {robots} is more than team.max_robots ({self.max_robots}); "
+                f"--set team.max_robots=N raises the cap"
             )
 
 
 @dataclass(frozen=True)
-class ExplorationConfig:
+class ExplorationConfig(Checked):
     """The whole configuration of one exploration episode."""
 
-    steps: int = 1000
+    steps: int = ranged(1000, 1, text="at least 1")
     # end the run once G's IoU reaches this level (the authors' IoU-stop protocol); None: never
-    until_iou: float | None = None
+    until_iou: float | None = ranged(None, 0, 1, low_open=True)
     sensor: SensorConfig = field(default_factory=SensorConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
     frontier: FrontierConfig = field(default_factory=FrontierConfig)
@@ -245,16 +444,6 @@ class ExplorationConfig:
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
     team: TeamConfig = field(default_factory=TeamConfig)
-
-    def __post_init__(self) -> None:
-        if self.steps < 1:
-            raise ConfigError(f"steps must be at least 1, got {self.steps}")
-        if self.until_iou is not None and not 0.0 < self.until_iou <= 1.0:
-            raise ConfigError(f"until_iou must be in (0, 1], got {self.until_iou}")
-
-
-class ConfigError(ValueError):
-    """A configuration override that names no field or has a value of the wrong type."""
 
 
 def apply_overrides(config: Any, overrides: list[str]) -> Any:
@@ -278,10 +467,18 @@ def _replace_path(node: Any, parts: list[str], raw: str, item: str) -> Any:
         value = _coerce(raw, hints[name], item)
     else:
         value = _replace_path(getattr(node, name), parts[1:], raw, item)
-    return dataclasses.replace(node, **{name: value})
+    try:
+        return dataclasses.replace(node, **{name: value})
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as error:  # a dataclass's own check that is not a ConfigError
+        raise ConfigError(f"override '{item}': {' '.join(str(error).split())}") from None
 
 
 def _coerce(raw: str, hint: Any, item: str) -> Any:
+    if dataclasses.is_dataclass(hint):
+        fields = ", ".join(f"{item.partition('=')[0]}.{f.name}" for f in dataclasses.fields(hint))
+        raise ConfigError(f"override '{item}': a section takes no value; set its fields ({fields})")
     origin = typing.get_origin(hint)
     if origin is Literal:
         if raw not in typing.get_args(hint):
@@ -289,9 +486,14 @@ def _coerce(raw: str, hint: Any, item: str) -> Any:
         return raw
     if origin in (typing.Union, types.UnionType):
         hint = next(a for a in typing.get_args(hint) if a is not type(None))
-    if typing.get_origin(hint) is tuple:  # tuple[X, ...]: comma-separated values
-        item_hint = typing.get_args(hint)[0]
-        return tuple(_coerce(part.strip(), item_hint, item) for part in raw.split(","))
+    if typing.get_origin(hint) is tuple:  # tuple[X, ...] or tuple[X, Y]: comma-separated values
+        parts = [part.strip() for part in raw.split(",")]
+        hints = typing.get_args(hint)
+        if len(hints) == 2 and hints[1] is Ellipsis:
+            hints = hints[:1] * len(parts)
+        elif len(hints) != len(parts):
+            raise ConfigError(f"override '{item}': give {len(hints)} comma-separated values")
+        return tuple(_coerce(part, each, item) for part, each in zip(parts, hints, strict=True))
     try:
         if hint is bool:
             if raw.lower() not in ("true", "false", "1", "0"):

@@ -9,107 +9,186 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from mapex.config import ConfigError, ExplorationConfig, apply_overrides
+from mapex.config import (
+    MAX_PROCESSES_PER_CPU,
+    PROCESS_MEMORY_BYTES,
+    Checked,
+    ConfigError,
+    ExplorationConfig,
+    apply_overrides,
+    check_process_count,
+    positive,
+    ranged,
+)
+
+MAX_PORT = 65_535
 
 
 @dataclass(frozen=True)
-class ServicesConfig:
+class ServicesConfig(Checked):
     """Wire limits and Zenoh defaults of the distributed simulator (services/, docs/design.md)."""
 
-    max_message_bytes: int = 32 * 2**20  # encoded payload cap, checked before unpacking
-    max_decoded_bytes: int = 128 * 2**20  # cap on a message's decompressed array bytes
-    compress_threshold_bytes: int = 4096  # arrays larger than this travel zlib-compressed
-    zlib_level: int = 1  # fastest level: maps are mostly runs of one code
+    SECTION = "services"
+    max_message_bytes: int = ranged(32 * 2**20, 1)  # encoded payload cap, checked before unpacking
+    max_decoded_bytes: int = ranged(128 * 2**20, 1)  # cap on a message's decompressed array bytes
+    # arrays larger than this travel zlib-compressed
+    compress_threshold_bytes: int = ranged(4096, 0)
+    zlib_level: int = ranged(1, 0, 9)  # fastest level: maps are mostly runs of one code
     hub_endpoint: str = "tcp/127.0.0.1:7447"  # well-known loopback endpoint served by services.up
     ephemeral_listen_endpoint: str = "tcp/127.0.0.1:0"  # default listener: loopback, any free port
-    predict_timeout_s: float = 10.0  # per-member prediction query; a hung worker costs this once
+    # per-member prediction query; a hung worker costs this once
+    predict_timeout_s: float = positive(10.0)
     # maps above this are expected to miss the prediction timeout (one whole-map G prediction:
     # ~0.6 us/cell on one laptop-CPU thread, so 8 M cells ~5 s, twice that with four workers on
     # two cores): the run is marked degraded at start
-    predict_max_cells: int = 8_000_000
-    health_probe_every_s: float = 1.0  # planner: how often a benched worker is probed again
-    health_probe_timeout_s: float = 2.0  # one health probe (answered at once by a live worker)
-    health_check_every_s: float = 5.0  # services.up: how often its workers are probed
+    predict_max_cells: int = ranged(8_000_000, 1)
+    # planner: how often a benched worker is probed again
+    health_probe_every_s: float = positive(1.0)
+    # planner: a worker that failed a query (timed out, ended it unanswered, answered for
+    # another worker, or implausibly) gets no query for bench_first_s, doubled for each further
+    # failure before its next good answer, up to bench_max_s. Only a timely, valid answer clears
+    # its record; its own health reply never does (docs/design.md#reliability)
+    bench_first_s: float = positive(30.0)
+    bench_max_s: float = positive(600.0)
+    # ... a worker is benched at the this-many-th of its queries in a row that ended with no
+    # reply at all (the first may be a route still being built, eclipse-zenoh#2767)
+    bench_after_unanswered: int = ranged(2, 1)
+    # planner: a member's answer that predicts occupied on more than this share of the known
+    # free cells of its crop, or free on more than this share of its known walls, or one value
+    # on every unknown cell, is implausible: left out (degraded) and its worker benched. The
+    # shipped ensemble's raw outputs contradict at most ~12% of the known free cells (next to
+    # walls) and ~14% of the known walls (noisy IPA scans) on seven development maps
+    # (tests/services/test_rogue_workers.py); 1 turns the check off
+    implausible_share: float = ranged(0.4, 0, 1)
+    implausible_min_cells: int = ranged(32, 1)  # fewer known cells of a kind are not judged
+    # one health probe (answered at once by a live worker)
+    health_probe_timeout_s: float = positive(2.0)
+    health_check_every_s: float = positive(5.0)  # services.up: how often its workers are probed
     # services.up restarts a worker stuck (busy on one prediction, or not answering probes)
     # this long
-    unresponsive_after_s: float = 30.0
-    supervision_poll_s: float = 0.2  # services.up / evaluate: how often children are checked
-    publish_period_s: float = 0.1  # planner -> viewers: at most one batch of maps per period
-    predict_retries: int = 3  # re-sends of a query that no worker was routed (no reply at all)
-    predict_retry_pause_s: float = 0.2  # before the first re-send; doubles for each next one
-    liveliness_query_timeout_s: float = 2.0  # planner's start-up discovery of live workers
-    predictor_threads: int = 1  # torch CPU threads of one predictor worker (docs/design.md)
-    predictor_drain_s: float = 3.0  # on shutdown, wait this long for the query being computed
-    world_drain_s: float = 2.0  # on shutdown, wait this long for the step being answered
-    step_timeout_s: float = 10.0  # one step query; a lost reply is retried with the same seq
-    step_retries: int = 3  # the planner gives up on the world after this many x the timeout
+    unresponsive_after_s: float = positive(30.0)
+    # services.up / evaluate: how often children are checked
+    supervision_poll_s: float = positive(0.2)
+    # planner -> viewers: at most one batch of maps per period
+    publish_period_s: float = positive(0.1)
+    # re-sends of a query that no worker was routed (no reply at all)
+    predict_retries: int = ranged(3, 0)
+    # before the first re-send; doubles for each next one
+    predict_retry_pause_s: float = positive(0.2)
+    # planner's start-up discovery of live workers
+    liveliness_query_timeout_s: float = positive(2.0)
+    # torch CPU threads of one predictor worker (docs/design.md)
+    predictor_threads: int = ranged(1, 1)
+    # on shutdown, wait this long for the query being computed, then leave it (keep it well
+    # below stop_grace_s: the worker must be gone before services.up's SIGKILL)
+    predictor_drain_s: float = ranged(1.0, 0)
+    world_drain_s: float = ranged(2.0, 0)  # on shutdown, wait this long for the step being answered
+    # one step query; a lost reply is retried with the same seq
+    step_timeout_s: float = positive(10.0)
+    # the planner gives up on the world after this many x the timeout
+    step_retries: int = ranged(3, 1)
     # back-off between step queries: first pause, doubling up to the second; a world that is
     # gone (a query that returns at once, unanswered) is asked again until the whole
     # step_retries x step_timeout_s is spent
-    step_retry_pause_s: tuple[float, float] = (0.2, 2.0)
+    step_retry_pause_s: tuple[float, float] = positive((0.2, 2.0))
     # team world: a robot whose step request is this late after its first teammate's stands
     # still for that step
-    team_step_wait_s: float = 10.0
-    world_wait_s: float = 60.0  # planner start-up: how long to wait for the world's keys
-    workers_wait_s: float = 120.0  # planner start-up: how long to wait for every member
-    supervisor_max_restarts: int = 5  # a crashed server is restarted this often, then left dead
-    stop_grace_s: float = 3.0  # services.up: SIGTERM, wait this long, then SIGKILL what is left
-    hub_probe_timeout_s: float = 1.0  # connect probe of a hub port that a bind probe found taken
+    team_step_wait_s: float = positive(10.0)
+    world_wait_s: float = positive(60.0)  # planner start-up: how long to wait for the world's keys
+    workers_wait_s: float = positive(120.0)  # planner start-up: how long to wait for every member
+    # a crashed server is restarted this often, then left dead
+    supervisor_max_restarts: int = ranged(5, 0)
+    # services.up: SIGTERM, wait this long, then SIGKILL what is left
+    stop_grace_s: float = ranged(3.0, 0)
+    # connect probe of a hub port that a bind probe found taken, and of every --connect
+    # endpoint of services.up / evaluate before any child starts
+    hub_probe_timeout_s: float = positive(1.0)
+    # services.up / evaluate with --connect: a run whose session has had no router for this
+    # long (the hub it joined ended, or the router stopped) ends with one line
+    hub_lost_grace_s: float = positive(10.0)
+    # services.up / evaluate start at most this many processes (planners, worlds, workers,
+    # tools) per CPU core this process may use, and no more than the memory holds at
+    # process_memory_bytes each
+    max_processes_per_cpu: int = ranged(MAX_PROCESSES_PER_CPU, 1)
+    process_memory_bytes: int = ranged(PROCESS_MEMORY_BYTES, 1)
+
+    def check_processes(self, count: int, what: str) -> None:
+        """ConfigError (one line naming the caps) when `count` child processes, started for
+        `what` (the flags that ask for them), are more than this machine holds."""
+        check_process_count(
+            count,
+            what,
+            self.max_processes_per_cpu,
+            self.process_memory_bytes,
+            "--set services.max_processes_per_cpu=N and services.process_memory_bytes=N",
+        )
 
 
 @dataclass(frozen=True)
-class WatchConfig:
+class WatchConfig(Checked):
     """The live viewer `services.watch`: how often it renders, how big, how many GIF frames."""
 
-    every_s: float = 1.0  # render at most this often (only when something new arrived)
-    poll_s: float = 0.1  # how often the loop looks at arrivals (reaction time to "finished")
-    get_timeout_s: float = 2.0  # late-joiner query; topics still unheard are re-asked this often
-    inbox_depth: int = 8  # newest payloads kept per topic between polls (a bad one hides no good)
-    dpi: int = 80
-    panel_inches: float = 4.0  # width of one map panel
-    max_gif_frames: int = 300  # at the cap every other frame is dropped (memory stays bounded)
-    gif_max_side_px: int = 480  # GIF frames are downscaled to fit this square
-    gif_frame_ms: int = 200
+    SECTION = "watch"
+    every_s: float = positive(1.0)  # render at most this often (only when something new arrived)
+    # how often the loop looks at arrivals (reaction time to "finished")
+    poll_s: float = positive(0.1)
+    # late-joiner query; topics still unheard are re-asked this often
+    get_timeout_s: float = positive(2.0)
+    # newest payloads kept per topic between polls (a bad one hides no good)
+    inbox_depth: int = ranged(8, 1)
+    dpi: int = ranged(80, 1, 2400)
+    panel_inches: float = ranged(4.0, 0, 100, low_open=True)  # width of one map panel
+    # at the cap every other frame is dropped (memory stays bounded)
+    max_gif_frames: int = ranged(300, 2)
+    gif_max_side_px: int = ranged(480, 1)  # GIF frames are downscaled to fit this square
+    gif_frame_ms: int = ranged(200, 1)
 
 
 @dataclass(frozen=True)
-class Ros2Config:
+class Ros2Config(Checked):
     """The ROS 2 bridge `services.ros2` (rmw_zenoh conventions: mapex.interop.rmw_zenoh)."""
 
-    domain_id: int = 0  # ROS_DOMAIN_ID of the ROS 2 graph the topics appear in
+    SECTION = "ros2"
+    domain_id: int = ranged(0, 0, 232)  # ROS_DOMAIN_ID of the ROS 2 graph the topics appear in
     node_name: str = "mapex_bridge"  # what `ros2 node list` shows
-    latched_depth: int = 1  # maps: transient local, the last one kept for late subscribers
-    volatile_depth: int = 10  # pose and paths
-    heartbeat_s: float = 0.5  # sample-miss heartbeat of reliable latched topics (as rmw_zenoh)
-    max_runs: int = 8  # the topics of older runs are withdrawn (their tokens undeclared)
+    # maps: transient local, the last one kept for late subscribers
+    latched_depth: int = ranged(1, 1)
+    volatile_depth: int = ranged(10, 1)  # pose and paths
+    # sample-miss heartbeat of reliable latched topics (as rmw_zenoh)
+    heartbeat_s: float = positive(0.5)
+    max_runs: int = ranged(8, 1)  # the topics of older runs are withdrawn (their tokens undeclared)
     # the whole trajectory at most this often per robot (and once more when the run ends); the
     # pose goes out every step
-    trajectory_period_s: float = 1.0
-    default_resolution_m: float = 0.1  # cell size until a run's world_info arrives
+    trajectory_period_s: float = ranged(1.0, 0)
+    default_resolution_m: float = positive(0.1)  # cell size until a run's world_info arrives
     # a recording goes on this long after a run's final status: Zenoh orders samples per key only,
     # so the last maps and poses may still be on their way
-    settle_s: float = 0.5
+    settle_s: float = ranged(0.5, 0)
 
 
 @dataclass(frozen=True)
-class WebConfig:
+class WebConfig(Checked):
     """The browser view `services.web`: where it serves, how much it sends, what it keeps."""
 
+    SECTION = "web"
     host: str = "127.0.0.1"  # loopback only unless allow_remote: the view has no authentication
-    port: int = 8000  # 0: any free port, logged (8765 is the Foxglove server's)
+    # 0: any free port, logged (8765 is the Foxglove server's)
+    port: int = ranged(8000, 0, MAX_PORT)
     allow_remote: bool = False  # serve a non-loopback host and accept any Host header
     # per robot and map kind; a map held back is replaced by newer ones and sent as soon as its
     # turn comes (the newest always gets out)
-    map_events_per_s: float = 4.0
-    flush_poll_s: float = 0.05  # how often held-back maps are looked at
-    keepalive_s: float = 5.0  # an SSE comment after this long without events (finds gone clients)
-    retry_ms: int = 1000  # how long a browser waits before reconnecting a dropped stream
+    map_events_per_s: float = positive(4.0)
+    flush_poll_s: float = positive(0.05)  # how often held-back maps are looked at
+    # an SSE comment after this long without events (finds gone clients)
+    keepalive_s: float = positive(5.0)
+    retry_ms: int = ranged(1000, 0)  # how long a browser waits before reconnecting a dropped stream
     # a client this far behind is dropped (it reconnects and starts again from a fresh snapshot)
-    client_max_queued_events: int = 512
-    max_metric_points: int = 5000  # metric samples kept per robot for late pages
-    max_trajectory_points: int = 20000  # poses kept per robot for late pages
-    max_runs: int = 32  # runs kept; the one updated least recently is forgotten first
-    close_timeout_s: float = 5.0  # how long `WebView.close` waits for each of its threads
+    client_max_queued_events: int = ranged(512, 1)
+    max_metric_points: int = ranged(5000, 1)  # metric samples kept per robot for late pages
+    max_trajectory_points: int = ranged(20000, 1)  # poses kept per robot for late pages
+    max_runs: int = ranged(32, 1)  # runs kept; the one updated least recently is forgotten first
+    # how long `WebView.close` waits for each of its threads
+    close_timeout_s: float = ranged(5.0, 0)
 
 
 DEFAULT_WEB = WebConfig()
@@ -119,7 +198,7 @@ SERVICES_SECTION = "services"  # `--set services.FIELD=VALUE` reaches `RunConfig
 
 
 @dataclass(frozen=True)
-class RunConfig:
+class RunConfig(Checked):
     """Everything the processes of one run share: the exploration settings (the world's
     sensor and motion, the planners' methods and metrics) and the services section."""
 
@@ -131,7 +210,7 @@ class RunConfig:
         services section, every other one to the exploration's (ConfigError, one line)."""
         config = self
         for item in overrides:
-            section = item.partition(".")[0]
+            section = item.partition("=")[0].partition(".")[0]
             path = item if section == SERVICES_SECTION else f"exploration.{item}"
             try:
                 config = apply_overrides(config, [path])

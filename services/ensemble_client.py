@@ -2,11 +2,13 @@
 
 `ZenohEnsemble` tracks the live workers of every member through their liveliness tokens and
 sends each prediction's queries at once, each to the least recently used live worker of its
-member. A member that does not answer is left out and the step recorded as degraded; a
-worker that let a query time out is benched until a health probe says it is not stuck; each
-request carries its budget (docs/design.md#following-one-scan,
-docs/design.md#reliability). Its interface is that of every `Predictor`: `predict`,
-`predict_later`, `wait` and `close`.
+member. A member that does not answer, or whose answer is refused (it names another worker
+than the one asked, or contradicts the known cells it was given), is left out and the step
+recorded as degraded. The planner trusts what it measured over what a worker says: a worker
+that failed is benched for a time that doubles with each further failure, and only a timely,
+valid answer clears it, never its own health reply; each request carries its budget
+(docs/design.md#following-one-scan, docs/design.md#reliability). Its interface is that of
+every `Predictor`: `predict`, `predict_later`, `wait` and `close`.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import zenoh
 
+from mapex.grid import FREE, OCCUPIED, UNKNOWN, dequantise_probability
 from mapex.prediction.base import (
     MEMBER_NAMES,
     EnsemblePrediction,
@@ -36,6 +39,9 @@ from services.messages import ErrorReply, HealthReply, PredictReply, PredictRequ
 
 _WAIT_POLL_S = 0.02  # polling step of `wait`
 _ZENOH_TIMEOUT = b"Timeout"  # the error payload Zenoh ends a timed-out query with
+_MAX_DOUBLINGS = 30  # of a bench time (bench_max_s caps it long before)
+# the lowest uint8 level of a reply that predicts "occupied" (probability >= 0.5)
+_OCCUPIED_LEVEL = int(np.argmax(dequantise_probability(np.arange(256, dtype=np.uint8)) >= 0.5))
 
 log = logging.getLogger("services.ensemble_client")
 
@@ -43,7 +49,7 @@ log = logging.getLogger("services.ensemble_client")
 @dataclass(frozen=True)
 class _Answers:
     """What the pool answered for one crop: float32 (len(answered), h, w) in the order of
-    `answered` (member indices), and the worker that served each of them."""
+    `answered` (member indices), and the worker queried for each of them."""
 
     probabilities: np.ndarray
     answered: tuple[int, ...]
@@ -59,7 +65,7 @@ class _Inflight:
 
     request_id: int  # -1: nothing was sent (empty crop)
     payload: bytes
-    shape: tuple[int, ...]
+    crop: np.ndarray  # the observed crop asked about (answers are checked against it)
     members: tuple[int, ...]
     pending: list[_Pending]
 
@@ -71,6 +77,17 @@ class _Pending:
     member: int
     worker_id: str
     replies: zenoh.Handler
+
+
+@dataclass
+class _Standing:
+    """What the planner measured of one worker (never what the worker says of itself)."""
+
+    strikes: int = 0  # failed queries since its last good answer
+    unanswered: int = 0  # of those, queries it ended with no reply at all, in a row
+    benches: int = 0  # benches since its last good answer (each twice as long as the last)
+    benched_until: float = 0.0  # monotonic time before which it gets no query
+    next_probe: float = 0.0  # monotonic time of its next health probe while benched
 
 
 class ZenohEnsemble(Predictor):
@@ -85,7 +102,7 @@ class ZenohEnsemble(Predictor):
         self.services = services
         self._lock = threading.Lock()
         self._live: dict[str, dict[str, int]] = {name: {} for name in MEMBER_NAMES}  # -> last use
-        self._benched: dict[tuple[str, str], float] = {}  # (member, worker) -> next probe time
+        self._standing: dict[tuple[str, str], _Standing] = {}  # (member, worker) -> record
         self._ticks = itertools.count(1)
         self._request_ids = itertools.count()
         pattern = alive_predictor_pattern()
@@ -104,9 +121,10 @@ class ZenohEnsemble(Predictor):
             return {name: tuple(sorted(workers)) for name, workers in self._live.items()}
 
     def benched_workers(self) -> dict[str, tuple[str, ...]]:
-        """The workers of every member (sorted) that get no query until a probe clears them."""
+        """The workers of every member (sorted) that get no query now (benched)."""
+        now = time.monotonic()
         with self._lock:
-            benched = sorted(self._benched)
+            benched = sorted(key for key, s in self._standing.items() if s.benched_until > now)
         return {name: tuple(w for m, w in benched if m == name) for name in MEMBER_NAMES}
 
     def wait(
@@ -137,13 +155,23 @@ class ZenohEnsemble(Predictor):
             return
         if not (isinstance(parsed, AliveKey) and parsed.role == "predict"):
             return
+        key = (parsed.member, parsed.worker_id)
         with self._lock:
             workers = self._live[parsed.member]
+            new = alive and parsed.worker_id not in workers
             if alive:
                 workers.setdefault(parsed.worker_id, 0)
             else:
                 workers.pop(parsed.worker_id, None)
-            self._benched.pop((parsed.member, parsed.worker_id), None)  # a new incarnation
+            standing = self._standing.get(key)
+            if standing is not None and not alive and standing.strikes == 0:
+                del self._standing[key]  # nothing against it left to remember
+            elif standing is not None and new:
+                # a new incarnation (e.g. restarted by its supervisor) ends the bench; its
+                # strikes stay: failing again benches it for twice as long
+                standing.benched_until = 0.0
+        if alive and not new:
+            return  # a token seen twice (history and start-up query)
         change = "joined" if alive else "left"
         log.info("worker %s of member %s %s", parsed.worker_id, parsed.member, change)
 
@@ -151,11 +179,12 @@ class ZenohEnsemble(Predictor):
         """The least recently used live, unbenched worker of `member` (ties by id), now
         marked used; benched workers due for a health probe are probed first."""
         self._probe_benched(member)
+        now = time.monotonic()
         with self._lock:
             workers = {
                 w: used
                 for w, used in self._live[member].items()
-                if (member, w) not in self._benched
+                if not self._is_benched(member, w, now)
             }
             if not workers:
                 return None
@@ -163,46 +192,89 @@ class ZenohEnsemble(Predictor):
             self._live[member][worker_id] = next(self._ticks)
             return worker_id
 
-    def _bench(self, member: str, worker_id: str) -> None:
+    def _is_benched(self, member: str, worker_id: str, now: float) -> bool:
+        standing = self._standing.get((member, worker_id))
+        return standing is not None and standing.benched_until > now
+
+    def _succeeded(self, member: str, worker_id: str) -> None:
+        """A timely, valid answer: the worker's record is clean again."""
         with self._lock:
-            self._benched[(member, worker_id)] = (
-                time.monotonic() + self.services.health_probe_every_s
-            )
+            standing = self._standing.pop((member, worker_id), None)
+        if standing is not None and standing.benches:
+            log.info("member %s: worker %s answered in time again: its record is cleared",
+                     member, worker_id)  # fmt: skip
+
+    def _failed(self, member: str, worker_id: str, why: str, unanswered: bool = False) -> None:
+        """A failed query (`unanswered`: it ended with no reply at all): a strike, and a bench
+        of `bench_first_s` doubled per earlier bench since its last good answer. Queries
+        ending unanswered bench only the `bench_after_unanswered`-th in a row (a route may be
+        still building); every other failure benches at once."""
+        services = self.services
+        now = time.monotonic()
+        with self._lock:
+            standing = self._standing.setdefault((member, worker_id), _Standing())
+            standing.strikes += 1
+            standing.unanswered = standing.unanswered + 1 if unanswered else 0
+            if unanswered and standing.unanswered < services.bench_after_unanswered:
+                return
+            doubling = 2 ** min(standing.benches, _MAX_DOUBLINGS)
+            bench_s = min(services.bench_first_s * doubling, services.bench_max_s)
+            standing.benches += 1
+            standing.benched_until = max(standing.benched_until, now + bench_s)
+            standing.next_probe = now + services.health_probe_every_s
+            strikes = standing.strikes
         log.warning(
-            "member %s: worker %s benched after a timeout (no queries until it answers a "
-            "health probe)", member, worker_id,
+            "member %s: worker %s benched for %g s (%s; %d failed queries since its last "
+            "good answer)", member, worker_id, bench_s, why, strikes,
         )  # fmt: skip
 
     def _probe_benched(self, member: str) -> None:
-        """Send a health probe to each benched worker of `member` whose probe is due."""
+        """Send a health probe to each benched worker of `member` whose probe is due. A probe
+        can only keep a worker benched (it says it is stuck), never bring it back."""
         now = time.monotonic()
         with self._lock:
-            due = [w for (m, w), at in self._benched.items() if m == member and at <= now]
+            due = [
+                w
+                for (m, w), s in self._standing.items()
+                if m == member and s.benched_until > now and s.next_probe <= now
+            ]
             for worker_id in due:
-                self._benched[(member, worker_id)] = now + self.services.health_probe_every_s
+                self._standing[(member, worker_id)].next_probe = (
+                    now + self.services.health_probe_every_s
+                )
         for worker_id in due:
             self.session.get(
                 health_key(member, worker_id),
-                self._on_probe_reply,
+                self._on_probe_reply(member, worker_id),
                 timeout=self.services.health_probe_timeout_s,
             )
 
-    def _on_probe_reply(self, reply: zenoh.Reply) -> None:
-        """Un-bench a worker whose health reply says it is not stuck in a prediction."""
-        if reply.ok is None:
-            return
-        try:
-            health = HealthReply.decode(reply.ok.payload.to_bytes(), self.services)
-        except ProtocolError as error:
-            log.warning("ignored a health reply: %s", error)
-            return
-        if health.busy_s >= self.services.predict_timeout_s:
-            return  # still stuck in one prediction
-        with self._lock:
-            back = self._benched.pop((health.member, health.worker_id), None) is not None
-        if back:
-            log.info("member %s: worker %s answered a health probe: back in use",
-                     health.member, health.worker_id)  # fmt: skip
+    def _on_probe_reply(self, member: str, worker_id: str) -> Callable[[zenoh.Reply], None]:
+        """The handler of a probe sent to `member`'s `worker_id`: a worker that says it is still
+        busy on one prediction past the timeout stays benched until the next probe can tell."""
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is None:
+                return
+            try:
+                health = HealthReply.decode(reply.ok.payload.to_bytes(), self.services)
+            except ProtocolError as error:
+                log.warning("ignored a health reply: %s", error)
+                return
+            if (health.member, health.worker_id) != (member, worker_id):
+                log.warning("ignored a health reply of %s/%s to a probe of %s/%s",
+                            health.member, health.worker_id, member, worker_id)  # fmt: skip
+                return
+            if health.busy_s < self.services.predict_timeout_s:
+                return  # "idle" is its word: only a timely answer clears it
+            probing = self.services.health_probe_every_s + self.services.health_probe_timeout_s
+            hold = time.monotonic() + probing
+            with self._lock:
+                standing = self._standing.get((member, worker_id))
+                if standing is not None and standing.benched_until > 0:
+                    standing.benched_until = max(standing.benched_until, hold)
+
+        return on_reply
 
     # ------------------------------------------------------------------ prediction
 
@@ -229,8 +301,10 @@ class ZenohEnsemble(Predictor):
         route was being re-established; Zenoh then ends a query at once with no reply,
         eclipse-zenoh/zenoh#2767) is sent again after a short pause, up to
         `services.predict_retries` times; a timed-out or refused one is not (a hung worker costs
-        one timeout, docs/design.md#reliability). The main map is G's only if G answered
-        (`member_ids[0] == 0`).
+        one timeout, docs/design.md#reliability). A reply is refused when it names another
+        worker than the one asked or contradicts the known cells of the crop (`implausibility`);
+        `workers` names the worker each answer was asked of. The main map is G's only if G
+        answered (`member_ids[0] == 0`).
         """
         return self.predict_later(observed, region, members)()
 
@@ -262,35 +336,40 @@ class ZenohEnsemble(Predictor):
         """Send one query per member (none for an empty crop)."""
         members = tuple(members)
         if crop.size == 0:  # nothing to predict (PredictRequest needs a non-empty map)
-            return _Inflight(-1, b"", crop.shape, members, [])
+            return _Inflight(-1, b"", crop, members, [])
         request_id = next(self._request_ids)
         budget_s = self.services.predict_timeout_s
         payload = PredictRequest(request_id, crop, budget_s).encode(self.services)
         sent = [p for p in (self._send(k, payload) for k in members) if p is not None]
-        return _Inflight(request_id, payload, crop.shape, members, sent)
+        return _Inflight(request_id, payload, crop.copy(), members, sent)
 
     def _finish(self, inflight: _Inflight) -> _Answers:
         """Collect the replies (re-sending unrouted queries) and assemble the answers."""
-        members, shape = inflight.members, inflight.shape
+        members, shape = inflight.members, inflight.crop.shape
         if inflight.request_id < 0:
             empty = np.zeros((len(members), *shape), dtype=np.float32)
             return _Answers(empty, members, ("",) * len(members))
-        results: dict[int, PredictReply | None] = {}
+        results: dict[int, tuple[PredictReply, str]] = {}  # member -> (reply, worker queried)
         pending = inflight.pending
+        unanswered: set[str] = set()  # workers already struck for no reply to this request
         for attempt in range(1 + self.services.predict_retries):
-            collected = {p.member: self._collect(p, inflight.request_id, shape) for p in pending}
-            results.update({k: reply for k, (reply, _) in collected.items()})
-            unrouted = [k for k, (_, routed) in collected.items() if not routed]
+            unrouted = []
+            for each in pending:
+                reply, routed = self._collect(each, inflight, unanswered)
+                if reply is not None:
+                    results[each.member] = (reply, each.worker_id)
+                if not routed:
+                    unrouted.append(each.member)
             if not unrouted or attempt == self.services.predict_retries:
                 break
             time.sleep(self.services.predict_retry_pause_s * 2**attempt)  # let routes settle
             sent = (self._send(k, inflight.payload) for k in unrouted)
             pending = [p for p in sent if p is not None]
-        answered = tuple(k for k in members if results.get(k) is not None)
+        answered = tuple(k for k in members if k in results)
         stacked = np.empty((len(answered), *shape), dtype=np.float32)
         for row, k in enumerate(answered):
-            stacked[row] = results[k].probabilities()
-        return _Answers(stacked, answered, tuple(results[k].worker_id for k in answered))
+            stacked[row] = results[k][0].probabilities()
+        return _Answers(stacked, answered, tuple(results[k][1] for k in answered))
 
     def _send(self, member: int, payload: bytes) -> _Pending | None:
         name = MEMBER_NAMES[member]
@@ -304,27 +383,36 @@ class ZenohEnsemble(Predictor):
         return _Pending(member, worker_id, replies)
 
     def _collect(
-        self, pending: _Pending, request_id: int, shape: tuple[int, ...]
+        self, pending: _Pending, inflight: _Inflight, unanswered: set[str]
     ) -> tuple[PredictReply | None, bool]:
-        """(the valid reply of one query or None (logged), whether any reply came at all)."""
-        name, where = MEMBER_NAMES[pending.member], f"worker {pending.worker_id}"
+        """(the valid reply of one query or None (logged), whether any reply came at all);
+        the worker's record notes how it did (`unanswered`: the workers already struck for
+        leaving this request unanswered, struck once per request)."""
+        name, worker_id = MEMBER_NAMES[pending.member], pending.worker_id
         replies = list(pending.replies)  # ends when the query is finalised or times out
         if not replies:  # no queryable matched (the worker just left) or it sent nothing
-            log.warning("member %s: %s sent no reply", name, where)
+            log.warning("member %s: worker %s sent no reply", name, worker_id)
+            if worker_id not in unanswered:
+                unanswered.add(worker_id)
+                self._failed(name, worker_id, "no reply", unanswered=True)
             return None, False
+        problem = "no reply"
         for reply in replies:
-            message, problem = self._check_reply(reply, request_id, name, shape)
+            message, problem = self._check_reply(reply, inflight, name, worker_id)
             if problem is None:
+                self._succeeded(name, worker_id)
                 return message, True
-            log.warning("member %s: %s gave no prediction: %s", name, where, problem)
+            log.warning("member %s: worker %s gave no prediction: %s", name, worker_id, problem)
         if any(_timed_out(reply) for reply in replies):
-            self._bench(name, pending.worker_id)
+            problem = "a timeout"
+        self._failed(name, worker_id, problem)
         return None, True
 
     def _check_reply(
-        self, reply: zenoh.Reply, request_id: int, member: str, shape: tuple[int, ...]
+        self, reply: zenoh.Reply, inflight: _Inflight, member: str, worker_id: str
     ) -> tuple[PredictReply | None, str | None]:
-        """(the reply's PredictReply, None) when it answers this query, else (None, why not)."""
+        """(the reply's PredictReply, None) when it answers this query, sent to `worker_id`
+        of `member`, plausibly; else (None, why not)."""
         payload = (reply.ok or reply.err).payload.to_bytes()
         try:
             message = decode_message(payload, (PredictReply, ErrorReply), self.services)
@@ -332,7 +420,11 @@ class ZenohEnsemble(Predictor):
             if reply.err is not None:  # Zenoh's own error, e.g. "Timeout"
                 return None, " ".join(payload.decode("utf-8", "replace").split())
             return None, str(error)
-        problem = _reply_problem(message, request_id, member, shape)
+        problem = _reply_problem(message, inflight.request_id, member, worker_id, inflight.crop)
+        if problem is None:
+            problem = implausibility(inflight.crop, message.probabilities_u8, self.services)
+            if problem is not None:
+                problem = f"implausible answer: {problem}"
         return (message, None) if problem is None else (None, problem)
 
 
@@ -342,15 +434,52 @@ def _timed_out(reply: zenoh.Reply) -> bool:
 
 
 def _reply_problem(
-    message: PredictReply | ErrorReply, request_id: int, member: str, shape: tuple[int, ...]
+    message: PredictReply | ErrorReply,
+    request_id: int,
+    member: str,
+    worker_id: str,
+    crop: np.ndarray,
 ) -> str | None:
-    """Why `message` is not the answer to this query, or None when it is."""
+    """Why `message` is not the answer to this query (sent to `worker_id` of `member`), or
+    None when it is."""
     if isinstance(message, ErrorReply):
         return f"error reply: {message.message}"
     if message.request_id != request_id:
         return f"reply to request {message.request_id}, expected {request_id}"
     if message.member != member:
         return f"reply from member {message.member}, expected {member}"
-    if message.probabilities_u8.shape != tuple(shape):
-        return f"reply of shape {message.probabilities_u8.shape}, expected {tuple(shape)}"
+    if message.worker_id != worker_id:
+        return f"reply signed by worker {message.worker_id!r}, but {worker_id!r} was asked"
+    if message.probabilities_u8.shape != crop.shape:
+        return f"reply of shape {message.probabilities_u8.shape}, expected {crop.shape}"
+    return None
+
+
+def implausibility(
+    crop: np.ndarray, quantised: np.ndarray, services: ServicesConfig = DEFAULT_SERVICES
+) -> str | None:
+    """Why the uint8 answer `quantised` to the observed `crop` cannot be a member's honest
+    prediction, or None. A network sees the known cells of its crop: an answer that predicts
+    occupied on more than `services.implausible_share` of the known free cells, or free on
+    more than that share of the known walls (each judged from `implausible_min_cells` such
+    cells), or one value on every unknown cell, contradicts its input (an all-free, all-wall,
+    constant or inverted map). The shipped ensemble stays far below the share (its raw
+    outputs are what this judges; known cells are copied through afterwards anyway)."""
+    share, least = services.implausible_share, services.implausible_min_cells
+    if share >= 1:
+        return None  # the check is off
+    occupied = quantised >= _OCCUPIED_LEVEL
+    for code, wrong, what in (
+        (FREE, occupied, "known free cells predicted occupied"),
+        (OCCUPIED, ~occupied, "known walls predicted free"),
+    ):
+        known = crop == code
+        count = int(np.count_nonzero(known))
+        if count >= least:
+            contradicted = int(np.count_nonzero(wrong & known))
+            if contradicted > share * count:
+                return f"{contradicted} of {count} {what}"
+    unknown = quantised[crop == UNKNOWN]
+    if unknown.size >= least and unknown.min() == unknown.max():
+        return f"one value ({int(unknown[0])}/255) on all {unknown.size} unknown cells"
     return None

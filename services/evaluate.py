@@ -33,8 +33,10 @@ from mapex.config import (
     ExplorationConfig,
     WorldConfig,
     argparse_type,
+    parse_seed,
 )
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
+from mapex.io_limits import read_text
 from mapex.methods import (
     ABLATIONS,
     MAIN_COMPARISON,
@@ -45,7 +47,6 @@ from mapex.methods import (
 from mapex.prediction.config import inference_from_args
 from mapex.report.runs import ReportError, load_run
 from mapex.results import METRICS_FILE, check_output_folder, episode_name, move_into_place
-from mapex.team.starts import check_team_size
 from mapex.worlds import StartSpec, WorldError, load_world, world_spec_help
 from mapex.worlds.starts import start_argument, start_cell, start_label
 from services.bridges.outside_tools import (
@@ -58,8 +59,15 @@ from services.config import RunConfig, add_run_config_argument
 from services.health import PoolWatch
 from services.keys import ID_MAX_CHARS
 from services.messages import MetricsMessage
-from services.pool import RunProgress, add_pool_arguments, hub_session_config, worker_specs
-from services.serving import configure_logging, stop_on_signals
+from services.pool import (
+    HubWatch,
+    RunProgress,
+    add_pool_arguments,
+    check_hub_answers,
+    hub_session_config,
+    worker_specs,
+)
+from services.serving import configure_logging, exit_on_signals, stop_on_signals
 from services.supervisor import ProcessSpec, Supervisor
 from services.zenoh_config import HUB_HELP, ZenohConfigError, add_zenoh_arguments, open_session
 
@@ -110,7 +118,7 @@ def plan_episodes(
     the budget, or None for each world's `auto` budget."""
     episodes = []
     for spec in world_specs:
-        world = load_world(spec).check_size(world_config.max_cells)
+        world = load_world(spec, world_config.max_cells)
         mine = starts if isinstance(starts, list) else _starts_of(starts, world.name)
         for start in mine:
             start_cell(world, start, world_config.start_clearance_cells)
@@ -136,13 +144,16 @@ def _starts_of(starts: dict[str, list[StartSpec]], world_name: str) -> list[Star
     return starts[world_name]
 
 
-def read_starts_file(path: Path) -> dict[str, list[StartSpec]]:
+def read_starts_file(
+    path: Path, max_bytes: int = DEFAULT_WORLD_CONFIG.max_file_bytes
+) -> dict[str, list[StartSpec]]:
     """{map name: [(row, col), ...]} from a JSON object of [[row, col], ...] lists; a
-    one-line ValueError for anything else."""
+    one-line ValueError for anything else (a file that is not a regular file, or larger
+    than `max_bytes`, is never read: `mapex.io_limits`)."""
     try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ValueError(f"starts file {path}: {error}") from None
+        data = json.loads(read_text(path, max_bytes))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
+        raise ValueError(f"starts file {path}: {' '.join(str(error).split())}") from None
     if not isinstance(data, dict):
         raise ValueError(f"starts file {path}: expected a JSON object of map name -> starts")
     starts = {}
@@ -276,9 +287,15 @@ def run_episodes(
     stop: threading.Event,
     watch: PoolWatch | None = None,
     settings: list[str] | None = None,
+    hub: HubWatch | None = None,
 ) -> tuple[int, list[str]]:
     """Run `todo`, `args.jobs` at a time; (episodes finished, failure lines). `watch` kills
-    stuck workers for the supervisor to restart; `settings`: the run's `--set` items."""
+    stuck workers for the supervisor to restart; `settings`: the run's `--set` items; a
+    joined hub that is gone (`hub`) ends the run as a failure.
+
+    On `stop` no episode starts, and the planners that have exited cleanly by then (one may
+    finish in the very poll the stop arrives in) are published before the caller stops the
+    rest: a finished episode is never thrown away."""
     queue, running, done, failures = list(todo), {}, [], []
     bar = tqdm(
         total=sum(episode.steps for episode in todo),
@@ -292,27 +309,45 @@ def run_episodes(
             supervisor.poll()
             if watch is not None:
                 watch.check()
+            if hub is not None and (lost := hub.lost()) is not None:
+                failures.append(lost)
+                break
             while queue and len(running) < args.jobs:
                 episode = queue.pop(0)
                 spec = planner_spec(episode, settings or [], args.out, flags)
                 supervisor.start(spec)
                 running[spec.name] = episode
-            for name, episode in list(running.items()):
-                code = supervisor.returncode(name)
-                if code is None:
-                    continue
-                del running[name]
-                if code == 0 and publish(episode, args.out):
-                    done.append(episode)
-                else:
-                    failures.append(f"{episode.name}: planner exited with {code}")
+            _collect_exited(supervisor, running, args.out, done, failures)
             steps = sum(e.steps for e in done) + sum(
                 progress.of(e.run_id) for e in running.values()
             )
             bar.update(min(steps, bar.total) - bar.n)
             bar.set_postfix_str(f"{len(done)} done, {len(failures)} failed", refresh=False)
             time.sleep(supervisor.services.supervision_poll_s)
+    if running:  # stopped: keep what finished cleanly before the rest is stopped
+        supervisor.poll()
+        _collect_exited(supervisor, running, args.out, done, failures)
     return len(done), failures
+
+
+def _collect_exited(
+    supervisor: Supervisor,
+    running: dict[str, Episode],
+    out_dir: Path,
+    done: list[Episode],
+    failures: list[str],
+) -> None:
+    """Move every planner of `running` that has exited out of it: a clean exit with its
+    folder written is published into `done`, any other exit is a line in `failures`."""
+    for name, episode in list(running.items()):
+        code = supervisor.returncode(name)
+        if code is None:
+            continue
+        del running[name]
+        if code == 0 and publish(episode, out_dir):
+            done.append(episode)
+        else:
+            failures.append(f"{episode.name}: planner exited with {code}")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -321,10 +356,19 @@ def main(args: argparse.Namespace) -> int:
     run_config = run_config.with_overrides(args.overrides)
     exploration, services = run_config.exploration, run_config.services
     methods = list(args.methods) + (list(ABLATIONS) if args.ablations else [])
-    starts = args.starts if args.starts_file is None else read_starts_file(args.starts_file)
-    check_team_size(args.robots)
+    max_bytes = exploration.world.max_file_bytes
+    starts = (
+        args.starts if args.starts_file is None else read_starts_file(args.starts_file, max_bytes)
+    )
+    exploration.team.check_robots(args.robots)
     if args.robots > 1 and not any(method in TEAM_METHODS for method in methods):
         raise ConfigError(f"--robots {args.robots} needs a team method ({', '.join(TEAM_METHODS)})")
+    bridges = len(bridge_spec(args, []))
+    services.check_processes(
+        args.jobs + len(args.members) * args.replicas + bridges,
+        f"--jobs {args.jobs} planners and {len(args.members)} x --replicas {args.replicas} "
+        f"workers" + (f" and {bridges} outside tools" if bridges else ""),
+    )
     episodes = plan_episodes(
         args.maps, methods, starts, args.seeds, exploration.world, args.robots, args.steps
     )
@@ -335,6 +379,7 @@ def main(args: argparse.Namespace) -> int:
     todo = [e for e in episodes if not finished(e, args.out, plain_config(exploration, e))]
     already = len(episodes) - len(todo)
     log.info("%d episodes: %d already finished, %d to run", len(episodes), already, len(todo))
+    check_hub_answers(args.connect, services)
     own_config, flags = hub_session_config(args, services)
     stop = stop_on_signals()
     session = open_session(own_config)
@@ -356,8 +401,9 @@ def main(args: argparse.Namespace) -> int:
         if todo:
             for spec in bridge_spec(args, flags) + workers:
                 supervisor.start(spec)
+        hub = HubWatch(session, args.connect, services)
         done, failures = run_episodes(
-            supervisor, todo, args, flags, progress, stop, watch, run_config.as_overrides()
+            supervisor, todo, args, flags, progress, stop, watch, run_config.as_overrides(), hub
         )
     finally:
         if tools is not None:
@@ -439,7 +485,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help='explicit starts instead of corners: JSON {"<map name>": [[row, col], ...]}',
     )
-    parser.add_argument("--seeds", type=_ints, default=[0], help="comma-separated (default: 0)")
+    parser.add_argument(
+        "--seeds", type=_seeds, default=[0], help="comma-separated seeds (default: 0)"
+    )
     add_budget_arguments(parser)
     parser.add_argument("--jobs", type=int, default=2, help="episodes at once (default 2)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="default: %(default)s")
@@ -450,6 +498,13 @@ def build_parser() -> argparse.ArgumentParser:
     add_outside_tool_arguments(parser)
     add_zenoh_arguments(parser, HUB_HELP)
     return parser
+
+
+def _seeds(text: str) -> list[int]:
+    try:
+        return [parse_seed(item.strip()) for item in text.split(",")]
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def _ints(text: str) -> list[int]:
@@ -476,4 +531,5 @@ def run_cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    exit_on_signals()  # a signal before serving ends the process at once
     sys.exit(run_cli())

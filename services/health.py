@@ -7,7 +7,9 @@ answers at once, on Zenoh's thread, with how long its current prediction has run
 SIGKILLs, for the supervisor to restart, a worker that has been busy on one prediction for
 `unresponsive_after_s`, or that answered probes before and has answered none for that long
 (its whole process is frozen). A worker still starting (no probe answered yet) is left to
-the supervisor's exit handling.
+the supervisor's exit handling. A reply counts only if it names the worker probed. What a
+worker says of itself can keep it from being killed, never from being benched: the planners
+bench a worker on what they measure (services/ensemble_client.py).
 """
 
 from __future__ import annotations
@@ -107,6 +109,11 @@ class PoolWatch:
                 health = HealthReply.decode(reply.ok.payload.to_bytes(), self.services)
             except ProtocolError as error:
                 log.warning("%s: ignored a health reply: %s", name, error)
+                return
+            spec = self.specs[name]
+            if (health.member, health.worker_id) != (spec.member, spec.worker_id):
+                log.warning("%s: ignored a health reply signed %s/%s", name,
+                            health.member, health.worker_id)  # fmt: skip
                 return
             with self._lock:
                 self._last_answer[name] = time.monotonic()

@@ -7,8 +7,14 @@ Messages are frozen dataclasses with `encode()` and `decode()` over the generic 
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import hmac
 import math
 import operator
+import re
+import struct
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal, TypeVar
 
@@ -136,11 +142,29 @@ class ScanReply(Message):
         return cls(pose, reader.array("n_cells", "uint16", 1), reader.array("hit", "bool", 1))
 
 
+STEP_KEY_CONTEXT = b"mapex step key v1|"  # step_key: HMAC(run token, this + run id)
+STEP_MAC_CONTEXT = b"mapex step request v1"  # the first bytes a step request's MAC covers
+_MAC_HEX = re.compile(r"[0-9a-f]{64}")  # an HMAC-SHA256, lowercase hex
+
+
+def step_key(run_token: str, run: str) -> bytes:
+    """The key a run's planners sign their step requests with and its world checks them
+    with: HMAC-SHA256 of `STEP_KEY_CONTEXT` + the run id under the run token. It proves the
+    token without revealing it, and a MAC made with it is worth nothing in another run."""
+    return hmac.new(run_token.encode(), STEP_KEY_CONTEXT + run.encode(), hashlib.sha256).digest()
+
+
 @dataclass(frozen=True, eq=False)
 class StepRequest(Message):
     """A robot's planner -> its world on `step` (docs/protocol.md): its motion of step
     seq - 1, whether it has nothing left to explore, and its new claim when it re-planned
-    with a method that coordinates."""
+    with a method that coordinates.
+
+    `mac`: in a run with a run token, HMAC-SHA256 (hex) under `step_key(token, run)` of
+    everything the request asks (`signed_bytes`): run id, robot index, seq, cells, done,
+    claimed and the claim, so the token never travels and a MAC cannot be moved to
+    another run, robot, step or motion (docs/design.md#trust).
+    """
 
     TYPE: ClassVar[str] = "step_request"
     seq: int
@@ -150,7 +174,7 @@ class StepRequest(Message):
     claim_goal: Cell | None
     claim_score: float | None
     claim_visible: np.ndarray | None
-    run_token: str | None = None
+    mac: str | None = None
 
     def __post_init__(self) -> None:
         _set(self, "seq", _checked_count(self.TYPE, "seq", self.seq))
@@ -160,8 +184,43 @@ class StepRequest(Message):
             _check_array(self.TYPE, "claim_visible", self.claim_visible, np.bool_, 2)
             if self.claim_score is None or not -math.inf <= self.claim_score < math.inf:
                 raise ProtocolError(f"{self.TYPE}: a claim needs a claim_score below +inf")
-        if self.run_token is not None:
-            _set(self, "run_token", _one_line(self.TYPE, "run_token", self.run_token))
+        if self.mac is not None and not (
+            isinstance(self.mac, str) and _MAC_HEX.fullmatch(self.mac)
+        ):
+            raise ProtocolError(f"{self.TYPE}: mac must be 64 lowercase hex digits")
+
+    def signed(self, key: bytes, run: str, robot: int) -> StepRequest:
+        """This request carrying its MAC under `key` as robot `robot` of `run`."""
+        return dataclasses.replace(self, mac=self.mac_under(key, run, robot))
+
+    def signed_by(self, key: bytes, run: str, robot: int) -> bool:
+        """Whether this request carries the MAC of robot `robot` of `run` under `key`
+        (compared in constant time)."""
+        expected = self.mac_under(key, run, robot)
+        return self.mac is not None and hmac.compare_digest(self.mac, expected)
+
+    def mac_under(self, key: bytes, run: str, robot: int) -> str:
+        """HMAC-SHA256 (hex) under `key` of `signed_bytes(run, robot)`."""
+        digest = hmac.new(key, digestmod=hashlib.sha256)
+        for part in self.signed_bytes(run, robot):
+            digest.update(part)
+        return digest.hexdigest()
+
+    def signed_bytes(self, run: str, robot: int) -> Iterator[bytes]:
+        """The canonical encoding a MAC covers, in parts: every variable-length part is
+        length-prefixed, so no two requests share it. Fields that do not travel (a claim's
+        score and cells without a goal) are not in it."""
+        yield _framed(STEP_MAC_CONTEXT)
+        yield _framed(run.encode())
+        yield struct.pack("<QQ??", robot, self.seq, self.done, self.claimed)
+        yield _framed(np.ascontiguousarray(self.cells, dtype="<i4").tobytes())
+        if self.claim_goal is None:
+            yield b"\x00"
+            return
+        visible = np.ascontiguousarray(self.claim_visible, dtype=np.bool_)
+        yield struct.pack("<?QQd", True, *self.claim_goal, float(self.claim_score))
+        yield struct.pack("<QQ", *visible.shape)
+        yield _framed(visible.tobytes())
 
     def _fields(self, config: ServicesConfig) -> dict[str, Any]:
         has_claim = self.claim_goal is not None
@@ -171,7 +230,7 @@ class StepRequest(Message):
             "claim_goal": list(self.claim_goal) if has_claim else None,
             "claim_score": float(self.claim_score) if has_claim else None,
             "claim_visible": encode_array(self.claim_visible, config) if has_claim else None,
-            "run_token": self.run_token,
+            "mac": self.mac,
         }  # fmt: skip
 
     @classmethod
@@ -182,8 +241,12 @@ class StepRequest(Message):
         visible = (
             None if reader.is_nil("claim_visible") else reader.array("claim_visible", "bool", 2)
         )
-        token = reader.added_text("run_token")
-        return cls(seq, cells, done, claimed, goal, score, visible, token)
+        return cls(seq, cells, done, claimed, goal, score, visible, reader.added_text("mac"))
+
+
+def _framed(data: bytes) -> bytes:
+    """`data` behind its length (8 bytes, little-endian)."""
+    return struct.pack("<Q", len(data)) + data
 
 
 @dataclass(frozen=True, eq=False)

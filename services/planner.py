@@ -25,13 +25,13 @@ from pathlib import Path
 import zenoh
 from tqdm import tqdm
 
-from mapex.config import ConfigError, ExplorationConfig
+from mapex.config import ConfigError, ExplorationConfig, argparse_type, parse_seed
 from mapex.episode import EpisodeResult, run_episode
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
 from mapex.prediction.base import MEMBER_NAMES
 from mapex.results import OutputError, check_destination, describe_end, destination, write_results
-from mapex.team.starts import check_team_size, team_start_cells
+from mapex.team.starts import team_start_cells
 from mapex.worlds import (
     StartSpec,
     World,
@@ -99,7 +99,7 @@ def explore(
         world, starts = _remote_start(source, run, robot, exploration, start)
         robots, here = len(starts), [robot]
     else:
-        source, world = None, load_world(local.spec)
+        source, world = None, load_world(local.spec, exploration.world.max_cells)
         starts, robots, here = local.start, local.robots, list(range(local.robots))
         team_start_cells(world, [starts], robots, exploration)  # WorldError if bad
     oversized = prediction_size_warning(world.shape, services)
@@ -254,7 +254,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --world: a team of this many robots sharing one map, all decided here",
     )
     parser.add_argument("--steps", type=int, default=1000, help="time budget T (default 1000)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (UPEN's RRT); default 0")
+    parser.add_argument(
+        "--seed",
+        type=argparse_type(parse_seed),
+        default=0,
+        help="random seed (UPEN's RRT); default 0",
+    )
     parser.add_argument("--out", type=Path, default=None, help="results folder")
     add_run_config_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -283,14 +288,11 @@ def run_cli(argv: list[str] | None = None) -> int:
         parser.error("--world needs --start")
     if args.robots > 1 and args.world is None:
         parser.error("--robots needs --world (a team is simulated here)")
-    try:
-        check_team_size(args.robots)
-    except ConfigError as error:
-        parser.error(str(error))
     local = None if args.world is None else LocalWorld(args.world, args.start, args.robots)
     configure_logging(f"planner[{args.run}/{robot_id(args.robot)}]")
     try:
         run_config = RunConfig(ExplorationConfig(steps=args.steps)).with_overrides(args.overrides)
+        run_config.exploration.team.check_robots(args.robots)
         config = zenoh_config_from_args(args, run_config.services)
     except (ConfigError, ZenohConfigError) as error:
         print(f"services.planner: error: {error}", file=sys.stderr)

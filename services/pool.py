@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import logging
 import threading
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -21,7 +22,7 @@ from services.codec import ProtocolError
 from services.config import ServicesConfig
 from services.keys import RobotKey, RobotTopic, parse_key, robot_key_pattern
 from services.messages import Message, decode_message
-from services.supervisor import ProcessSpec, claim_hub
+from services.supervisor import ProcessSpec, claim_hub, endpoint_silence
 from services.zenoh_config import ZenohConfigError, zenoh_config
 
 log = logging.getLogger("services.pool")
@@ -120,12 +121,68 @@ def hub_session_config(
         hub = services.hub_endpoint
         raise ZenohConfigError(
             f"a hub already listens on {hub} (another services.up or services.evaluate?): "
-            f"run beside it with --listen tcp/127.0.0.1:<free port>, or join it with --connect "
-            f"{hub} (this run then ends when that one does)"
+            f"run beside it with --listen tcp/127.0.0.1:<free port>, or join it with --mode "
+            f"client --connect {hub} (this run then ends when that one does)"
         )
     for endpoint in listen:
         flags += ["--connect", endpoint]
     return zenoh_config(mode, [], listen, args.config, services), flags
+
+
+class HubWatch:
+    """Whether the hub a run joined with `--connect` is still there: `services.up` and
+    `services.evaluate` end the run with `lost()`'s line once their session has had no
+    router for `ServicesConfig.hub_lost_grace_s` (the run that served the hub ended, or the
+    router stopped). Otherwise a joined run went on without the hub's workers, its
+    peer-mode children still linked to each other. A hub that was never seen to be a router
+    (another supervisor's `--mode peer` hub) is not watched; nor is a hub served here."""
+
+    def __init__(
+        self, session: zenoh.Session, connect: Sequence[str] | None, services: ServicesConfig
+    ) -> None:
+        self.session = session
+        self.endpoints = list(connect or ())
+        self.grace_s = services.hub_lost_grace_s
+        self._seen = False  # a router was linked once
+        self._gone_since: float | None = None
+
+    def lost(self) -> str | None:
+        """The line that ends the run, or None while the hub is there (or not watched)."""
+        if not self.endpoints:
+            return None
+        if any(True for _ in self.session.info.routers_zid()):
+            self._seen, self._gone_since = True, None
+            return None
+        if not self._seen:
+            return None
+        now = time.monotonic()
+        if self._gone_since is None:
+            self._gone_since = now
+        if now - self._gone_since < self.grace_s:
+            return None
+        return (
+            f"the hub at --connect {' '.join(self.endpoints)} is gone (no router for "
+            f"{self.grace_s:g} s: the run that served it ended, or the router stopped): "
+            f"stopping the run"
+        )
+
+
+def check_hub_answers(connect: Sequence[str] | None, services: ServicesConfig) -> None:
+    """ZenohConfigError (one line) naming the first `--connect` endpoint where nothing
+    accepts a connection within `services.hub_probe_timeout_s`, before any child starts:
+    otherwise a peer-mode session opens anyway and the run waits for a world that can never
+    answer (and a client-mode one gives up only after Zenoh's own retries). tcp/ and tls/
+    endpoints are probed (`endpoint_silence`); None (no --connect) probes nothing."""
+    for endpoint in connect or ():
+        try:
+            silence = endpoint_silence(endpoint, services.hub_probe_timeout_s)
+        except ValueError as error:
+            raise ZenohConfigError(f"bad --connect endpoint: {error}") from None
+        if silence is not None:
+            raise ZenohConfigError(
+                f"nothing answers at --connect {endpoint} ({silence}): start the hub or router "
+                f"there first, or leave out --connect to serve the hub here"
+            )
 
 
 class RunProgress:

@@ -13,6 +13,7 @@ injection and exits: docs/design.md#processes; health and benching: docs/design.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import re
@@ -21,6 +22,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import NoReturn
 
 import zenoh
 
@@ -161,6 +163,11 @@ def serve(
         token.undeclare()
         probe.undeclare()
         servers.close(services.predictor_drain_s)
+        if any(thread.is_alive() for thread in servers.threads):  # its querier gets no reply
+            log.warning(
+                "stopping without the prediction in progress (still computing after the "
+                "%g s drain)", services.predictor_drain_s,
+            )  # fmt: skip
     return server.answered
 
 
@@ -192,6 +199,8 @@ def main(
         members=(member,),
         **inference.ensemble_options(),
     )
+    if stop is not None and stop.is_set():  # stopped while loading: never serve
+        return 0
     session = open_session(config)
     try:
         server = MemberServer(predictor, member, worker_id, hang_after)
@@ -269,6 +278,21 @@ def run_cli(argv: list[str] | None = None) -> int:
     return 0
 
 
+def exit_now(code: int) -> NoReturn:
+    """End the process with `code` at once, without the interpreter's teardown.
+
+    A stopped worker has nothing left to save (its session is closed, its replies sent), but
+    tearing down torch's thousands of modules takes seconds on a loaded machine, longer than
+    services.up's `stop_grace_s`, and would wait on a thread still computing a prediction
+    that nobody will read: the supervisor would SIGKILL a worker that had stopped cleanly.
+    """
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):
+            stream.flush()
+    os._exit(code)
+
+
 def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace, worker_id: str) -> None:
     """argparse-style one-line errors (exit 2) for flag values argparse cannot check itself."""
     if not is_valid_id(worker_id):
@@ -290,4 +314,4 @@ def _cuda_available() -> bool:
 
 
 if __name__ == "__main__":
-    sys.exit(run_cli())
+    exit_now(run_cli())

@@ -3,7 +3,9 @@
 A service declares one queryable per key, answers its queries in arrival order on a
 thread of its own (inside `with query:` so the querier stops waiting as soon as the
 reply is sent), waits for SIGINT/SIGTERM and then undeclares and drains. Each answer is told
-how long its query waited in the queue, so a worker can drop one its querier gave up on.
+how long its query waited in the queue, so a worker can drop one its querier gave up on. An
+answer that raises (a bug, or an input nobody foresaw) costs one warning and an `error`
+reply, never the key's thread: the service answers the next query.
 """
 
 from __future__ import annotations
@@ -28,7 +30,9 @@ from services.messages import ErrorReply, Message
 Answer = Callable[[Payload | None, float], Message]
 """Turns a query's payload (None: none) into the reply, told how long (s) it waited queued."""
 SUPERVISOR_PID_ENV = "MAPEX_SUPERVISOR_PID"  # set by services.supervisor for its children
-RUN_TOKEN_ENV = "MAPEX_RUN_TOKEN"  # a run's secret: services.up sets it for its world and planners
+# a run's secret: services.up sets it for its world and planners, which sign their steps with
+# a key derived from it (services.messages.step_key); it never travels
+RUN_TOKEN_ENV = "MAPEX_RUN_TOKEN"
 STOP_POLL_S = 0.5  # how often the main thread looks up from waiting (signals run meanwhile)
 
 log = logging.getLogger("services.serving")
@@ -77,32 +81,70 @@ class QueryServers:
 
 
 def answer_queries(waiting: queue.SimpleQueue, key: str, answer: Answer) -> None:
-    """Answer queued (arrival time, query) pairs in order until a None arrives."""
+    """Answer queued (arrival time, query) pairs in order until a None arrives; an answer
+    that raises is one warning and an `error` reply, and the next query is answered."""
     while (item := waiting.get()) is not None:
         arrived, query = item
         with query:  # leaving the block finalises the query: the querier stops waiting
-            payload = None if query.payload is None else query.payload.to_bytes()
-            reply = answer(payload, time.monotonic() - arrived)
+            try:
+                payload = None if query.payload is None else query.payload.to_bytes()
+                reply = answer(payload, time.monotonic() - arrived)
+                encoded = reply.encode()
+            except Exception as error:  # whatever it was (a bug, an unforeseen input): serve on
+                why = " ".join(f"{type(error).__name__}: {error}".split())
+                log.warning("%s: could not answer a query: %s", key, why)
+                reply = ErrorReply(f"{key}: the query could not be answered")
+                encoded = reply.encode()
             try:
                 if isinstance(reply, ErrorReply):
-                    query.reply_err(reply.encode())
+                    query.reply_err(encoded)
                 else:
-                    query.reply(key, reply.encode())
+                    query.reply(key, encoded)
             except zenoh.ZError as error:  # e.g. the querier left; the next query is unaffected
                 log.warning("could not send a reply: %s", " ".join(str(error).split()))
 
 
-def stop_on_signals() -> threading.Event:
-    """An event set by SIGINT or SIGTERM (a clean stop instead of a KeyboardInterrupt)."""
-    stop = threading.Event()
+_signals_exit_until_serving = False  # set by exit_on_signals(until_serving=True)
+_serving = False  # set when wait_for begins: the process serves
+
+
+def exit_on_signals(until_serving: bool = False) -> None:
+    """The first thing a service's `__main__` does: from here SIGINT and SIGTERM end the
+    process at once (exit 128 + the signal number) while it loads a world or weights and
+    sets up, so a process stopped then never lingers (an orphaned world setting up a huge
+    team once ignored SIGTERM for minutes). `stop_on_signals` installs the graceful stop
+    later; with `until_serving` its handler too exits at once until `wait_for` begins."""
+    global _signals_exit_until_serving
+    _signals_exit_until_serving = until_serving
     for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+        signal.signal(signum, _exit_at_once)
+
+
+def _exit_at_once(signum: int, _frame: object) -> None:
+    os._exit(128 + signum)  # nothing to undeclare or flush yet: no cleanup to wait for
+
+
+def stop_on_signals() -> threading.Event:
+    """An event set by SIGINT or SIGTERM (a clean stop instead of a KeyboardInterrupt);
+    after `exit_on_signals(until_serving=True)` a signal before `wait_for` exits at once."""
+    stop = threading.Event()
+
+    def handle(signum: int, frame: object) -> None:
+        if _signals_exit_until_serving and not _serving:
+            _exit_at_once(signum, frame)
+        stop.set()
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, handle)
     return stop
 
 
 def wait_for(stop: threading.Event) -> None:
     """Block until `stop` is set, waking regularly so signal handlers can run; also stop
-    when the supervisor that started this process is gone (killed with SIGKILL)."""
+    when the supervisor that started this process is gone (killed with SIGKILL). From here
+    a signal stops the process gracefully (`exit_on_signals`)."""
+    global _serving
+    _serving = True
     while not stop.wait(STOP_POLL_S):
         if supervisor_gone():
             log.warning("the supervisor is gone: stopping")

@@ -6,7 +6,8 @@ reaches only the supervisor, which then stops the children itself: SIGTERM, a gr
 then SIGKILL of whatever is left and of its process group. Every output line of a child goes
 to one log sink, prefixed with its name. The caller calls `poll()` in its own loop, which
 restarts the servers that crashed; call a supervisor from one thread. `claim_hub` decides
-whether services.up serves the well-known hub endpoint itself or joins the hub there.
+whether services.up serves the well-known hub endpoint itself or joins the hub there;
+`endpoint_silence` tells whether anything answers at a `--connect` endpoint.
 """
 
 from __future__ import annotations
@@ -324,18 +325,49 @@ def claim_hub(endpoint: str, services: ServicesConfig = DEFAULT_SERVICES) -> boo
     return not _accepts_connections(family, address, services.hub_probe_timeout_s)
 
 
-def parse_tcp_endpoint(endpoint: str) -> tuple[str, int]:
-    """(host, port) of a Zenoh `tcp/host:port` endpoint (IPv6 hosts in brackets)."""
+def parse_tcp_endpoint(endpoint: str, protocols: tuple[str, ...] = ("tcp",)) -> tuple[str, int]:
+    """(host, port) of a Zenoh `tcp/host:port` endpoint (IPv6 hosts in brackets), or of an
+    endpoint of another of `protocols` written the same way (`tls/host:port`)."""
     protocol, slash, locator = endpoint.partition("/")
     address = locator.split("#", 1)[0].split("?", 1)[0]  # Zenoh config and metadata suffixes
     host, colon, port_text = address.rpartition(":")
     if host.startswith("[") and host.endswith("]"):
         host = host[1:-1]
-    if protocol != "tcp" or not slash:
-        raise ValueError(f"hub endpoint {endpoint!r} is not a tcp/host:port endpoint")
+    if protocol not in protocols or not slash:
+        raise ValueError(f"hub endpoint {endpoint!r} is not a {protocols[0]}/host:port endpoint")
     if not colon or not host or not port_text.isdigit() or int(port_text) > 65535:
-        raise ValueError(f"hub endpoint {endpoint!r} is not of the form tcp/host:port")
+        raise ValueError(f"hub endpoint {endpoint!r} is not of the form {protocol}/host:port")
     return host, int(port_text)
+
+
+TCP_PROTOCOLS = ("tcp", "tls")  # Zenoh link protocols over one TCP connection to host:port
+
+
+def endpoint_silence(endpoint: str, timeout_s: float) -> str | None:
+    """Why nothing answers at a Zenoh endpoint ("connection refused", "no answer within
+    1.0 s", "cannot resolve host ..."), or None when something accepts a TCP connection
+    at its host:port (the endpoint's protocol is one of `TCP_PROTOCOLS`) or the endpoint
+    cannot be probed this way (udp/, quic/, unixsock-stream/, ...: Zenoh says it then).
+    ValueError for a tcp/ or tls/ endpoint without a host:port."""
+    if endpoint.partition("/")[0] not in TCP_PROTOCOLS:
+        return None
+    host, port = parse_tcp_endpoint(endpoint, TCP_PROTOCOLS)
+    try:
+        addresses = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except socket.gaierror:
+        return f"cannot resolve host {host!r}"
+    reasons = []
+    for family, _, _, _, address in addresses:
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.settimeout(timeout_s)
+            try:
+                probe.connect(address)
+                return None
+            except TimeoutError:
+                reasons.append(f"no answer within {timeout_s:g} s")
+            except OSError as error:
+                reasons.append((error.strerror or str(error)).lower())
+    return "; ".join(dict.fromkeys(reasons))
 
 
 def _accepts_connections(family: int, address: tuple, timeout_s: float) -> bool:

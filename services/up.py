@@ -25,7 +25,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from mapex.budget import add_budget_arguments, resolve_steps
-from mapex.config import ConfigError, ExplorationConfig
+from mapex.config import MAX_SEED, ConfigError, ExplorationConfig, argparse_type, parse_seed
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
 from mapex.prediction.config import inference_from_args
@@ -50,8 +50,15 @@ from services.config import RunConfig, add_run_config_argument
 from services.health import PoolWatch
 from services.keys import ID_MAX_CHARS, is_valid_id, robot_id
 from services.messages import PoseMessage
-from services.pool import RunProgress, add_pool_arguments, hub_session_config, worker_specs
-from services.serving import RUN_TOKEN_ENV, configure_logging, stop_on_signals
+from services.pool import (
+    HubWatch,
+    RunProgress,
+    add_pool_arguments,
+    check_hub_answers,
+    hub_session_config,
+    worker_specs,
+)
+from services.serving import RUN_TOKEN_ENV, configure_logging, exit_on_signals, stop_on_signals
 from services.supervisor import ProcessSpec, Supervisor, describe_exit
 from services.zenoh_config import (
     HUB_HELP,
@@ -141,6 +148,7 @@ def supervise(
     stop: threading.Event,
     show_progress: bool,
     watch: PoolWatch | None = None,
+    hub: HubWatch | None = None,
 ) -> int:
     """Poll until every planner exits (or `stop`); return the exit code of the whole run.
 
@@ -148,7 +156,8 @@ def supervise(
     ends the whole run at once, with the world's own last line: its robots' poses, sequence
     numbers and scans live only in that process, so a restarted world could not resume the
     run soundly. So does any child that fails to start (exit 2: bad flags, missing weights, no
-    hub), with its own error line. `watch` kills stuck workers for `poll` to restart.
+    hub), with its own error line. `watch` kills stuck workers for `poll` to restart; a
+    joined hub that is gone (`hub`) ends the run too.
     """
     pending = {spec.name for spec in specs["planners"]}
     failed: list[str] = []
@@ -158,6 +167,7 @@ def supervise(
             if watch is not None:
                 watch.check()
             fatal = _failed_start(supervisor, specs) or _gone_world(supervisor, specs["worlds"])
+            fatal = fatal or (hub.lost() if hub is not None else None)
             if fatal is not None:
                 log.error("%s", fatal)
                 return EXIT_FAILED
@@ -184,13 +194,15 @@ def main(args: argparse.Namespace) -> int:
     run_config = RunConfig(ExplorationConfig(until_iou=args.until_iou))
     run_config = run_config.with_overrides(args.overrides)
     exploration, services = run_config.exploration, run_config.services
-    world = load_world(args.world).check_size(exploration.world.max_cells)
+    check_process_caps(args, run_config)
+    world = load_world(args.world, exploration.world.max_cells)
     args.steps = resolve_steps(args.steps, world)
     exploration = dataclasses.replace(exploration, steps=args.steps)
     run_config = dataclasses.replace(run_config, exploration=exploration)
     runs = plan_runs(args, world, exploration)
     check_output_folder(args.out or DEFAULT_RESULTS_DIR)
     check_outside_tool_arguments(args)
+    check_hub_answers(args.connect, services)
     own_config, zenoh_flags = hub_session_config(args, services)
     specs = child_specs(args, runs, zenoh_flags, run_config)
     specs["tools"] = bridge_spec(args, zenoh_flags)
@@ -205,8 +217,9 @@ def main(args: argparse.Namespace) -> int:
         for spec in specs["tools"] + specs["workers"] + specs["worlds"] + specs["planners"]:
             supervisor.start(spec)
         total = args.steps * sum(len(run.starts) for run in runs)
+        hub = HubWatch(session, args.connect, services)
         return supervise(
-            supervisor, specs, progress, runs, total, stop, not args.no_progress, watch
+            supervisor, specs, progress, runs, total, stop, not args.no_progress, watch, hub
         )
     finally:
         if tools is not None:
@@ -214,6 +227,21 @@ def main(args: argparse.Namespace) -> int:
         supervisor.stop()
         progress.close()
         session.close()
+
+
+def check_process_caps(args: argparse.Namespace, run_config: RunConfig) -> None:
+    """ConfigError (one line, naming the cap) when `--robots` is above `team.max_robots` or
+    the processes asked for (a world and --robots planners per run, the workers, the outside
+    tools) are more than this machine holds (`ServicesConfig.check_processes`)."""
+    run_config.exploration.team.check_robots(args.robots)
+    bridges = len(bridge_spec(args, []))
+    planners, workers = args.runs * args.robots, len(args.members) * args.replicas
+    run_config.services.check_processes(
+        planners + args.runs + workers + bridges,
+        f"--runs {args.runs} x --robots {args.robots} planners, {args.runs} worlds and "
+        f"{len(args.members)} x --replicas {args.replicas} workers"
+        + (f" and {bridges} outside tools" if bridges else ""),
+    )
 
 
 def _failed_start(supervisor: Supervisor, specs: dict[str, list[ProcessSpec]]) -> str | None:
@@ -254,7 +282,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_budget_arguments(parser)
     add_start_argument(parser, 0, "start pose of the first run (default 0)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the first run (default 0)")
+    parser.add_argument(
+        "--seed",
+        type=argparse_type(parse_seed),
+        default=0,
+        help="seed of the first run (default 0)",
+    )
     parser.add_argument(
         "--robots", type=int, default=1, help="robots of each run, one team (default 1)"
     )
@@ -277,6 +310,8 @@ def run_cli(argv: list[str] | None = None) -> int:
     for flag in ("robots", "runs", "replicas", "threads"):
         if getattr(args, flag) < 1:
             parser.error(f"--{flag} must be at least 1")
+    if args.seed + args.runs - 1 > MAX_SEED:
+        parser.error(f"--seed {args.seed} + --runs {args.runs}: the seeds end above {MAX_SEED}")
     if args.run_prefix is not None and not (
         is_valid_id(args.run_prefix) and len(args.run_prefix) <= RUN_PREFIX_MAX_CHARS
     ):
@@ -290,4 +325,5 @@ def run_cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    exit_on_signals()  # a signal before serving ends the process at once
     sys.exit(run_cli())

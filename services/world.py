@@ -4,14 +4,14 @@ Every run is a team of N >= 1 robots (docs/algorithms.md#teams): the world answe
 step queries of the robots' planners in lockstep, one step for all, and every planner gets
 every robot's scan and the claims made at that step. It publishes each robot's pose and
 scan, and its world_info and ground truth (also served to late joiners). Keys, messages,
-sequence numbers, retries and the run token: docs/protocol.md. Bad world, starts or
-flags: one line, exit 2; SIGINT/SIGTERM: a clean stop, exit 0.
+sequence numbers, retries and the signed steps of a run with a token: docs/protocol.md.
+A bad world (one above `world.max_cells` too), starts or flags: one line, exit 2;
+SIGINT/SIGTERM: a clean stop, exit 0.
 """
 
 from __future__ import annotations
 
 import argparse
-import hmac
 import logging
 import queue
 import sys
@@ -59,6 +59,7 @@ from services.messages import (
     StepReply,
     StepRequest,
     WorldInfo,
+    step_key,
 )
 from services.serving import (
     RUN_TOKEN_ENV,
@@ -101,8 +102,10 @@ class WorldServer:
     robot whose planner is gone is not waited for and its claim is withdrawn. The reply says
     `finished` (nobody moves) when every robot left has nothing left to explore.
     `answer_step` never raises on bad input and may be called from several threads at once;
-    `on_step` (settable) hears of every robot's fresh scan. With a `run_token`, requests that
-    do not carry it are refused before anything else is looked at.
+    `on_step` (settable) hears of every robot's fresh scan. With a `run_token` (and the `run`
+    it belongs to), a request that does not carry its MAC under `step_key(run_token, run)`
+    for this robot is refused before anything else is looked at; a claim that does not fit
+    the world (its goal outside the map, its cells another shape) is refused too.
     """
 
     def __init__(
@@ -113,7 +116,10 @@ class WorldServer:
         on_step: StepListener | None = None,
         run_token: str | None = None,
         services: ServicesConfig = DEFAULT_SERVICES,
+        run: str | None = None,
     ) -> None:
+        if run_token is not None and run is None:
+            raise ValueError("a world with a run token needs the run id its steps are signed for")
         if not starts:
             raise StartError("a world needs at least one robot")
         clearance = config.world.start_clearance_cells
@@ -125,7 +131,8 @@ class WorldServer:
         self.config = config
         self.simulator = Simulator(world, self.starts, config.sensor, config.motion)
         self.on_step = on_step
-        self.run_token = run_token
+        self.run = run
+        self._step_key = None if run_token is None else step_key(run_token, run or "")
         self.services = services
         self.served = 0  # robot scans taken, all robots together
         self.seq = 0  # the step being collected (0: the initial scans)
@@ -165,8 +172,11 @@ class WorldServer:
         except ProtocolError as error:
             log.warning("refused a malformed step request: %s", error)
             return ErrorReply(f"malformed step request: {error}")
-        if not self._authorised(request):
-            return self._refuse(robot, f"step seq {request.seq} without this run's token")
+        if not self._authorised(robot, request):
+            why = f"step seq {request.seq} without this run's token's signature"
+            return self._refuse(robot, why)
+        if (problem := self._claim_problem(request)) is not None:
+            return self._refuse(robot, f"step seq {request.seq}: {problem}")
         with self._clock:
             return self._wait_for_step(robot, request)
 
@@ -287,10 +297,21 @@ class WorldServer:
             visible.reshape(len(made), *shape), lost,
         )  # fmt: skip
 
-    def _authorised(self, request: StepRequest) -> bool:
-        if self.run_token is None:
+    def _authorised(self, robot: int, request: StepRequest) -> bool:
+        if self._step_key is None:
             return True
-        return hmac.compare_digest((request.run_token or "").encode(), self.run_token.encode())
+        return request.signed_by(self._step_key, self.run or "", robot)
+
+    def _claim_problem(self, request: StepRequest) -> str | None:
+        """Why the claim of `request` does not fit this world, or None (no claim, or it fits)."""
+        if request.claim_goal is None:
+            return None
+        shape = self.world.shape
+        if not (request.claim_goal[0] < shape[0] and request.claim_goal[1] < shape[1]):
+            return f"claim_goal {request.claim_goal} lies outside the {shape} map"
+        if request.claim_visible.shape != shape:
+            return f"claim_visible has shape {request.claim_visible.shape}, the map {shape}"
+        return None
 
     def _refuse(self, robot: int, why: str) -> ErrorReply:
         log.warning("robot %s: %s", robot_id(robot), why)
@@ -312,6 +333,8 @@ def serve(
     services: ServicesConfig = DEFAULT_SERVICES,
 ) -> int:
     """Serve `server`'s world for `run` on `session` until `stop` is set; return steps served."""
+    if server.run is not None and server.run != run:
+        raise ValueError(f"the world's steps are signed for run {server.run!r}, not {run!r}")
     publishers = _declare_step_publishers(session, server, run)
     step_publisher = _StepPublisher(publishers)
     server.on_step = step_publisher
@@ -398,11 +421,12 @@ def main(
 
     Returns the robot scans served. Raises StartError or WorldError (bad starts, no start
     pose) before any network set-up, and ZenohConfigError when the session is refused. With
-    `run_token` only steps carrying it move a robot.
+    `run_token` only steps signed with its key for this run move a robot.
     """
     server = WorldServer(
-        world, starts, run_config.exploration, run_token=run_token, services=run_config.services
-    )
+        world, starts, run_config.exploration, run_token=run_token,
+        services=run_config.services, run=run,
+    )  # fmt: skip
     session = open_session(config)
     try:
         return serve(session, server, run, stop or threading.Event(), run_config.services)
@@ -447,8 +471,9 @@ def run_cli(argv: list[str] | None = None) -> int:
     stop = stop_on_signals()
     try:
         run_config = RunConfig().with_overrides(args.overrides)
+        run_config.exploration.team.check_robots(args.robots)
         config = zenoh_config_from_args(args, run_config.services)
-        world = load_world(args.world)
+        world = load_world(args.world, run_config.exploration.world.max_cells)
         token = run_token_from_env()
         if token is None:
             log.warning("no %s set: any client that reaches the hub may step", RUN_TOKEN_ENV)
@@ -474,4 +499,7 @@ def _check_flags(
 
 
 if __name__ == "__main__":
+    from services.serving import exit_on_signals
+
+    exit_on_signals(until_serving=True)  # a signal before serving ends the process at once
     sys.exit(run_cli())

@@ -2,22 +2,28 @@
 
 A step is a query on `mapex/@v1/<run>/<robot>/step` carrying the robot's sequence number;
 a query that gets no reply is sent again with the same number (the world answers a repeat
-with its cached reply and does not move the robot twice). The world's name, size, settings
-and ground truth come from its `world_info` and `ground_truth` queryables, asked until they
-answer (docs/protocol.md).
+with its cached reply and does not move the robot twice). In a run with a token, every
+request carries its MAC under the run's step key instead of the token. The world's name,
+size, settings and ground truth come from its `world_info` and `ground_truth` queryables,
+asked until they answer (docs/protocol.md). A step reply is checked against them (robots,
+rays, poses and scans, claims) before anything uses it: a world that answers garbage or
+an invalid step is one line, `WorldUnavailableError`.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import time
+from collections.abc import Callable
 
 import numpy as np
 import zenoh
 
+from mapex.config import ConfigError, SensorConfig
 from mapex.episode import WorldStep
 from mapex.methods.claims import Claim
-from mapex.sensor import Scan
+from mapex.sensor import Scan, cast_scan
 from mapex.team.team import Decision
 from mapex.worlds.base import World
 from services.codec import DEFAULT_SERVICES, ProtocolError
@@ -33,6 +39,7 @@ from services.messages import (
     StepRequest,
     WorldInfo,
     decode_message,
+    step_key,
 )
 
 _RETRY_PAUSE_S = 0.2  # between start-up queries for the world's keys
@@ -51,7 +58,9 @@ class StepRefusedError(RuntimeError):
 class ZenohWorld:
     """Robot `robot` of a run, moved and scanned by the world process reachable through
     `session`: it sends this robot's decision of each step and gets every robot's scan and
-    the claims made at it back."""
+    the claims made at it back. With `run_token` every step is signed with the run's step
+    key (`services.messages.step_key`); the token itself is not kept nor sent. After `fetch`
+    every step reply is checked against the world it described."""
 
     def __init__(
         self,
@@ -65,8 +74,11 @@ class ZenohWorld:
         self.run = run
         self.robot = robot
         self.services = services
-        self.run_token = run_token  # carried by every step (the world may require it)
+        self._step_key = None if run_token is None else step_key(run_token, run)
         self.key = robot_key(run, robot_id(robot), "step")
+        self.info: WorldInfo | None = None  # set by fetch: what step replies are checked by
+        self.world: World | None = None
+        self._sensor: SensorConfig | None = None  # the world's sensor, when it said it
 
     def fetch(self, timeout_s: float | None = None) -> tuple[WorldInfo, World]:
         """The world's info and its ground truth as a `World`, waiting for the world to serve."""
@@ -78,7 +90,13 @@ class ZenohWorld:
             raise WorldUnavailableError(
                 f"run {self.run}: ground truth {truth.occupancy.shape} != world size {info.shape}"
             )
-        return info, truth.to_world(info.name, info.resolution_m)
+        if info.n_rays is not None and info.range_cells is not None:
+            try:
+                self._sensor = SensorConfig(info.n_rays, info.range_cells)
+            except ConfigError as error:
+                raise WorldUnavailableError(f"run {self.run}: world_info: {error}") from None
+        self.info, self.world = info, truth.to_world(info.name, info.resolution_m)
+        return info, self.world
 
     def initial(self) -> list[Scan]:
         """Every robot's scan where it stands (seq 0)."""
@@ -97,28 +115,27 @@ class ZenohWorld:
         request = StepRequest(
             seq, cells, done, decision.claimed, None if claim is None else claim.goal,
             None if claim is None else claim.score, None if claim is None else claim.visible,
-            self.run_token,
         )  # fmt: skip
+        if self._step_key is not None:
+            request = request.signed(self._step_key, self.run, self.robot)
         wait_s = self.services.step_timeout_s + self.services.team_step_wait_s
-        reply = self._request(self.key, request.encode(self.services), seq, StepReply, wait_s)
+        reply = self._request(self.key, request.encode(self.services), seq, wait_s)
         return _world_step_of(reply, max(seq - 1, 0))
 
-    def _request(
-        self, key: str, payload: bytes, seq: int, kind: type[Message], timeout_s: float
-    ) -> Message:
-        """The world's reply of type `kind` to step query `seq` on `key`, asked again with
-        back-off while unanswered; StepRefusedError or WorldUnavailableError (one line)."""
+    def _request(self, key: str, payload: bytes, seq: int, timeout_s: float) -> StepReply:
+        """The world's valid reply to step query `seq` on `key`, asked again with back-off
+        while unanswered; StepRefusedError or WorldUnavailableError (one line)."""
         began = time.monotonic()
         deadline = began + self.services.step_retries * timeout_s
         pause, longest_pause = self.services.step_retry_pause_s
-        attempt = 0
+        attempt, check = 0, self._step_check(seq)
         while True:
             attempt += 1
             wait_s = max(min(timeout_s, deadline - time.monotonic()), 0.1)
-            message = self._ask(key, payload, (kind, ErrorReply), wait_s)
+            message = self._ask(key, payload, (StepReply, ErrorReply), wait_s, check)
             if isinstance(message, ErrorReply):
                 raise StepRefusedError(f"{key}: {message.message}")
-            if message is not None:
+            if isinstance(message, StepReply):
                 return message
             if time.monotonic() + pause >= deadline:
                 break
@@ -140,16 +157,82 @@ class ZenohWorld:
             time.sleep(_RETRY_PAUSE_S)
 
     def _ask(
-        self, key: str, payload: bytes, kinds: tuple[type[Message], ...], timeout_s: float
+        self,
+        key: str,
+        payload: bytes,
+        kinds: tuple[type[Message], ...],
+        timeout_s: float,
+        check: Callable[[Message], str | None] | None = None,
     ) -> Message | None:
-        """The first decodable reply of the expected kinds to one query, or None."""
+        """The first valid reply of the expected kinds to one query (an ErrorReply needs no
+        `check`), or None when none came. With `check`, a query that got only invalid
+        replies (undecodable, of another kind, or what `check` finds wrong) raises
+        WorldUnavailableError (one line); without, they are dropped."""
+        invalid = None
         for reply in self.session.get(key, payload=payload or None, timeout=timeout_s):
             sample = reply.ok if reply.ok is not None else reply.err
             try:
-                return decode_message(sample.payload.to_bytes(), kinds, self.services)
+                message = decode_message(sample.payload.to_bytes(), kinds, self.services)
             except ProtocolError as error:
-                log.warning("%s: dropped a reply: %s", key, error)
+                invalid = str(error)
+            else:
+                is_error = isinstance(message, ErrorReply)
+                invalid = None if check is None or is_error else check(message)
+                if invalid is None:
+                    return message
+            log.warning("%s: dropped a reply: %s", key, invalid)
+        if invalid is not None and check is not None:
+            raise WorldUnavailableError(f"{key}: the world's reply is invalid: {invalid}")
         return None
+
+    def _step_check(self, seq: int) -> Callable[[Message], str | None]:
+        """What is wrong with a reply to step query `seq` (None: nothing)."""
+        return lambda reply: _step_problem(reply, seq, self.info, self.world, self._sensor)
+
+
+def _step_problem(
+    reply: Message,
+    seq: int,
+    info: WorldInfo | None,
+    world: World | None,
+    sensor: SensorConfig | None,
+) -> str | None:
+    """Why `reply` is not a valid answer to step `seq` of the world that `info` and `world`
+    describe (None before they are known: only the message's own rules hold), or None."""
+    if not isinstance(reply, StepReply):
+        return f"expected a step_reply, got {reply.TYPE!r}"
+    if reply.seq != seq:
+        return f"step_reply of step {reply.seq}, not of step {seq}"
+    if info is None or world is None:
+        return None
+    robots, shape = len(info.starts), np.array(info.shape)
+    if len(reply.claim_state) != robots:
+        return f"step_reply for {len(reply.claim_state)} robots, the run has {robots}"
+    scans = 0 if reply.finished else robots
+    if len(reply.poses) != scans:
+        return f"step_reply with {len(reply.poses)} scans, expected {scans}"
+    if scans and info.n_rays is not None and reply.n_cells.shape[1] != info.n_rays:
+        return f"step_reply scans of {reply.n_cells.shape[1]} rays, the sensor has {info.n_rays}"
+    if ((reply.poses < 0) | (reply.poses >= shape)).any():
+        return f"step_reply with a pose outside the {info.shape} map"
+    made = reply.claim_state == CLAIM_MADE
+    goals, scores = reply.claim_goals[made], reply.claim_scores[made]
+    if ((goals < 0) | (goals >= shape)).any():
+        return f"step_reply with a claimed goal outside the {info.shape} map"
+    if len(reply.claim_visible) and reply.claim_visible.shape[1:] != info.shape:
+        return f"step_reply with claimed cells of another shape than the {info.shape} map"
+    if np.isnan(scores).any() or (scores == math.inf).any():
+        return "step_reply with a claim scored NaN or +inf"
+    for robot, pose in enumerate(reply.poses):
+        row, col = int(pose[0]), int(pose[1])
+        if world.occupancy[row, col]:
+            return f"step_reply puts robot {robot_id(robot)} in a wall at {(row, col)}"
+        if sensor is not None:
+            truth = cast_scan(world.occupancy, (row, col), sensor)
+            same_cells = np.array_equal(truth.n_cells, reply.n_cells[robot])
+            if not (same_cells and np.array_equal(truth.hit, reply.hit[robot])):
+                return f"step_reply scan of robot {robot_id(robot)} contradicts the ground truth"
+    return None
 
 
 def _world_step_of(reply: StepReply, t: int) -> WorldStep:

@@ -18,6 +18,7 @@ from typing import Literal
 
 import zenoh
 
+from mapex.io_limits import read_text
 from services.codec import DEFAULT_SERVICES
 from services.config import ServicesConfig
 
@@ -148,7 +149,11 @@ def _config_from_file(path: Path) -> zenoh.Config:
     if not path.is_file():
         raise ZenohConfigError(f"Zenoh config file {path} does not exist")
     try:
-        return zenoh.Config.from_file(str(path))
+        text = read_text(path)  # a regular file within the size limit
+    except OSError as error:
+        raise ZenohConfigError(f"Zenoh config file {path}: {error}") from None
+    try:
+        return zenoh.Config.from_json5(text)
     except zenoh.ZError as error:
         raise ZenohConfigError(f"Zenoh config file {path} is invalid: {_one_line(error)}") from None
 

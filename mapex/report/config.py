@@ -4,22 +4,27 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from mapex.config import Checked, positive, ranged, share
 from mapex.methods import ABLATIONS, BEYOND_PAPER, FOLLOW_UP, MAIN_COMPARISON
 
 
 @dataclass(frozen=True)
-class ReportConfig:
+class ReportConfig(Checked):
     """The evaluation report `python -m mapex.report`: figure settings and snapshot steps."""
 
-    snapshot_steps: tuple[int, ...] = (200, 500, 1000)  # columns of snapshots.png
-    dpi: int = 120
-    curve_panel_inches: float = 4.0  # width (and height) of one metric panel of curves.png
-    snapshot_panel_inches: float = 2.2  # width of one map panel of snapshots.png
+    snapshot_steps: tuple[int, ...] = ranged((200, 500, 1000), 0)  # columns of snapshots.png
+    dpi: int = ranged(120, 1, 2400)
+    # width (and height) of one metric panel of curves.png
+    curve_panel_inches: float = ranged(4.0, 0, 100, low_open=True)
+    # width of one map panel of snapshots.png
+    snapshot_panel_inches: float = ranged(2.2, 0, 100, low_open=True)
     # maps wider than this (cols / rows) get one snapshots.png row per (method, map kind)
-    snapshot_wide_aspect: float = 2.0
-    snapshot_wide_panel_inches: float = 6.0  # width of one map panel in that wide layout
-    snapshot_wide_row_gap_inches: float = 0.2  # space between the rows of that wide layout
-    band_alpha: float = 0.2  # opacity of the standard-error bands
+    snapshot_wide_aspect: float = positive(2.0)
+    # width of one map panel in that wide layout
+    snapshot_wide_panel_inches: float = ranged(6.0, 0, 100, low_open=True)
+    # space between the rows of that wide layout
+    snapshot_wide_row_gap_inches: float = ranged(0.2, 0, 100)
+    band_alpha: float = share(0.2)  # opacity of the standard-error bands
     # paired differences (first - second on the same episodes) the report lists when both ran
     paired_comparisons: tuple[tuple[str, str], ...] = (
         ("pipe", "pw_nbv"),
@@ -28,7 +33,7 @@ class ReportConfig:
         ("mapex_plus", "pipe"),
         ("mapex", "observed_map"),
     )
-    paired_level: tuple[str, float] = ("iou", 0.9)  # whose first step the pairs compare
+    paired_level: tuple[str, float] = share(("iou", 0.9))  # whose first step the pairs compare
 
     @property
     def method_order(self) -> tuple[str, ...]:

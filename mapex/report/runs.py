@@ -3,12 +3,14 @@
 A run folder holds metrics.json (AUCs, world, method, start), curves.csv (the sampled metric
 curves) and optionally snapshots.npz (maps at a few steps). Unreadable folders are skipped
 with a warning rather than failing the whole report, since a results folder may hold a few
-broken or half-written runs.
+broken or half-written runs. Every file is read within the limits of `mapex.io_limits`
+(a regular file, at most `world.max_file_bytes`; snapshots judged by their headers first).
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import sys
@@ -18,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mapex.io_limits import check_npz, read_text
 from mapex.results import CURVES_FILE, METRICS_FILE, SNAPSHOTS_FILE, folder_name, level_key
 from mapex.worlds.starts import start_label
 
@@ -147,9 +150,12 @@ def missing_runs(runs: Iterable[RunRecord]) -> list[str]:
 def load_run(folder: Path) -> RunRecord:
     """One run folder (ReportError / OSError / ValueError when it is incomplete or corrupt)."""
     metrics_path = folder / METRICS_FILE
-    if not metrics_path.is_file():
+    if not metrics_path.exists():
         raise ReportError(f"no {METRICS_FILE}")
-    metrics = json.loads(metrics_path.read_text())
+    try:
+        metrics = json.loads(read_text(metrics_path))
+    except RecursionError:
+        raise ReportError(f"{METRICS_FILE} is nested too deeply") from None
     if not isinstance(metrics, dict):
         raise ReportError(f"{METRICS_FILE} is not an object")
     missing = [k for k in ("world", "method", "start_index", "auc") if k not in metrics]
@@ -160,10 +166,14 @@ def load_run(folder: Path) -> RunRecord:
 
 
 def _read_curves(path: Path) -> tuple[np.ndarray, ...]:
-    with path.open(newline="") as handle:
-        rows = list(csv.DictReader(handle))
+    reader = csv.DictReader(io.StringIO(read_text(path), newline=""))
+    rows = list(reader)
     if rows and not set(("step", *METRICS)) <= set(rows[0]):
         raise ReportError(f"{path.name} lacks one of the columns step, {', '.join(METRICS)}")
+    columns = len(reader.fieldnames or ())
+    for number, row in enumerate(rows, start=2):
+        if None in row or None in row.values():  # more, or fewer, fields than the header
+            raise ReportError(f"{path.name}: line {number} does not have {columns} fields")
     steps = np.array([int(row["step"]) for row in rows], dtype=np.int64)
     values = [
         np.array([float(row[m]) if row[m] else math.nan for row in rows], dtype=np.float64)
@@ -197,9 +207,10 @@ def has_snapshots(run: RunRecord) -> bool:
 def load_snapshots(run: RunRecord) -> Snapshots | None:
     """The run's snapshots.npz, or None when it has none (older runs)."""
     path = run.path / SNAPSHOTS_FILE
-    if not path.is_file():
+    if not path.exists():
         return None
-    with np.load(path) as data:
+    check_npz(path, what="snapshots")
+    with np.load(path, allow_pickle=False) as data:
         prediction = data["prediction"] if "prediction" in data.files else None
         return Snapshots(data["steps"], data["observed"], prediction)
 

@@ -14,16 +14,10 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import ndimage
 
-from mapex.config import ConfigError, ExplorationConfig
+from mapex.config import ExplorationConfig
 from mapex.grid import Cell
 from mapex.worlds import StartSpec, World, WorldError, start_cell
 from mapex.worlds.starts import eligible_start_cells
-
-
-def check_team_size(robots: int) -> None:
-    """ConfigError (one line) for a team size below one."""
-    if robots < 1:
-        raise ConfigError(f"--robots must be at least 1 (got {robots})")
 
 
 def team_start_cells(

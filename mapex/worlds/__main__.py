@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mapex.config import argparse_type, parse_seed
 from mapex.worlds.procedural import generate_floor_plan, plan_config
 
 
@@ -14,7 +15,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m mapex.worlds", description="Render one procedural floor plan."
     )
-    parser.add_argument("--seed", type=int, default=0, help="plan seed (default: 0)")
+    parser.add_argument(
+        "--seed", type=argparse_type(parse_seed), default=0, help="plan seed (default: 0)"
+    )
     parser.add_argument("--out", type=Path, default=Path("plan.png"), help="PNG to write")
     parser.add_argument(
         "--free-outside", action="store_true", help="free space around the building, as in KTH"

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
+from mapex.io_limits import check_npz
 from mapex.worlds.base import (
     CORRIDOR_PREFIX,
     HOUSE_PREFIX,
@@ -59,10 +60,16 @@ class HousePlans:
 
 @lru_cache(maxsize=2)
 def load_plans(path: Path = HOUSEEXPO_PLANS) -> HousePlans:
-    """The plans in `path` (HouseExpo's plans.npz); a one-line WorldError naming a bad file."""
+    """The plans in `path` (HouseExpo's plans.npz); a one-line WorldError naming a bad file
+    (its members' headers are checked against the file and `max_plans_bytes` first)."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise WorldError(f"missing HouseExpo plans file: {path}")
+    hint = "HouseExpoConfig.max_plans_bytes"
+    try:
+        check_npz(path, HouseExpoConfig().max_plans_bytes, "plans", hint)
+    except (ValueError, OSError) as error:
+        raise WorldError(one_line(error)) from None
     try:
         with np.load(path, allow_pickle=False) as archive:
             arrays = {key: archive[key] for key in PLAN_KEYS if key in archive.files}

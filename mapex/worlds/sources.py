@@ -5,18 +5,22 @@ it is one exact word, or it is a directory), the syntax shown to users, a one-li
 description and its loader as a "module:function" string, imported only when a spec of that
 source is loaded (as `mapex.prediction.PREDICTORS` does). A loader takes the spec's argument
 (the text after the prefix; the whole spec for a directory) and returns a World or raises a
-one-line WorldError. Adding a source is one `register_world_source` call; the `--world`
-help of every command and the error for a spec that names no world are built from the
-registry (`world_spec_help`), so they list every source.
+one-line WorldError; a loader that reads files may also take `max_cells` (the
+`world.max_cells` limit), to refuse a file from its header before reading it. Adding a
+source is one `register_world_source` call; the `--world` help of every command and the
+error for a spec that names no world are built from the registry (`world_spec_help`), so
+they list every source.
 """
 
 from __future__ import annotations
 
 import importlib
+import inspect
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from mapex.config import WorldConfig
 from mapex.worlds.base import (
     CORRIDOR_PREFIX,
     GENERATED_PREFIX,
@@ -28,6 +32,7 @@ from mapex.worlds.base import (
 
 DEFAULT_WORLD = "generated:0"
 DEFAULT_SPEC = "default"
+DEFAULT_MAX_CELLS = WorldConfig().max_cells
 
 Match = Literal["prefix", "exact", "directory"]
 
@@ -68,11 +73,14 @@ class WorldSource:
             return spec == self.key
         return Path(spec).is_dir()
 
-    def load(self, spec: str) -> World:
-        """The world of `spec` (a spec this source recognises)."""
+    def load(self, spec: str, max_cells: int = DEFAULT_MAX_CELLS) -> World:
+        """The world of `spec` (a spec this source recognises); a loader that takes
+        `max_cells` gets it (it refuses a bigger map before reading it)."""
         arguments = {"prefix": spec[len(self.key) :], "exact": "", "directory": spec}
         module_name, _, function_name = self.loader.partition(":")
         loader = getattr(importlib.import_module(module_name), function_name)
+        if "max_cells" in inspect.signature(loader).parameters:
+            return loader(arguments[self.match], max_cells=max_cells)
         return loader(arguments[self.match])
 
     def shown(self, described: bool = True) -> str:
@@ -125,9 +133,10 @@ def find_world_source(spec: str) -> WorldSource | None:
     return directory if directory is not None and directory.recognises(spec) else None
 
 
-def load_world(spec: str) -> World:
+def load_world(spec: str, max_cells: int = DEFAULT_MAX_CELLS) -> World:
     """The world named by `spec`; a one-line WorldError when it names none (the error lists
-    every registered form of spec)."""
+    every registered form of spec) or has more than `max_cells` cells (the `world.max_cells`
+    setting: a map file is refused from its header, before its data is read)."""
     if not spec:
         raise WorldError(f"empty world spec: expected {world_spec_help(described=False)}")
     source = find_world_source(spec)
@@ -136,7 +145,7 @@ def load_world(spec: str) -> World:
         if _directory_source() is not None:
             raise WorldError(f"no such map directory: {spec} (a world spec is {expected})")
         raise WorldError(f"unknown world spec '{spec}': expected {expected}")
-    return source.load(spec)
+    return source.load(spec, max_cells).check_size(max_cells)
 
 
 def default_world(_: str = "") -> World:

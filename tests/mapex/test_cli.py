@@ -83,6 +83,11 @@ def test_a_method_that_does_not_coordinate_runs_as_a_team_sharing_one_map(tmp_pa
         (["--robots", "0", "--method", "mapex_team"], "--robots must be at least 1"),
         (["--robots", "0"], "--robots must be at least 1"),
         (["--robots", "x"], "invalid int value"),
+        (["--robots", "100000", "--method", "nearest_team"], "more than team.max_robots (64)"),
+        (["--set", "sensor=1"], "override 'sensor=1': a section takes no value"),
+        (["--set", "sensor.n_rays=0"], "sensor.n_rays must be in [1, 100000], got 0"),
+        (["--set", "motion.cells_per_step=0"], "motion.cells_per_step must be in [1, 65535]"),
+        (["--seed", "-1"], "seed -1 is out of range"),
         (
             ["--robots", "3", "--method", "nearest_team", "--set", "team.spacing_cells=5000"],
             "room for 1 robots 5000 cells apart",

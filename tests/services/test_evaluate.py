@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import os
@@ -10,6 +11,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -21,7 +23,7 @@ from mapex.config import ExplorationConfig
 from mapex.episode import run_episode
 from mapex.results import write_results
 from mapex.worlds import load_world
-from services.config import RunConfig
+from services.config import RunConfig, ServicesConfig
 from services.evaluate import (
     BROKEN_DIR,
     Episode,
@@ -33,6 +35,7 @@ from services.evaluate import (
     publish,
     read_starts_file,
     remove_staging,
+    run_episodes,
 )
 
 SMALL = ["--maps", "generated:0", "--methods", "nearest,mapex", "--starts", "0,1",
@@ -225,6 +228,12 @@ def damage_missing_curves(folder):
     (folder / "curves.csv").unlink()
 
 
+def damage_short_curves_row(folder):
+    lines = (folder / "curves.csv").read_text().splitlines()
+    lines[-1] = ",".join(lines[-1].split(",")[:2])  # a row cut short: no iou, no tu
+    (folder / "curves.csv").write_text("\n".join(lines) + "\n")
+
+
 def damage_other_method(folder):
     metrics = json.loads((folder / "metrics.json").read_text())
     (folder / "metrics.json").write_text(json.dumps({**metrics, "method": "mapex"}))
@@ -235,6 +244,7 @@ def damage_other_method(folder):
     [
         (damage_truncated_metrics, SHORT, "unreadable"),
         (damage_missing_curves, SHORT, "unreadable"),
+        (damage_short_curves_row, SHORT, "does not have 4 fields"),
         (damage_other_method, SHORT, "not generated:0/nearest"),
         (None, ExplorationConfig(steps=30), "another steps (20, not 30)"),
         (None, dataclasses.replace(SHORT, path_gain=dataclasses.replace(
@@ -265,6 +275,48 @@ def test_a_planner_writes_hidden_and_only_the_evaluation_publishes(tmp_path, sou
     assert not finished(episode, tmp_path)
     assert publish(episode, tmp_path) and finished(episode, tmp_path)
     assert not written.exists() and remove_staging(tmp_path) == 0
+
+
+class FinishingSupervisor:
+    """A stand-in for the supervisor: its one planner writes its folder and exits 0 a moment
+    after it starts, and the Ctrl-C (`stop`) arrives in the same poll interval."""
+
+    def __init__(self, sound_run, out, stop: threading.Event) -> None:
+        self.services = ServicesConfig(supervision_poll_s=0.5)
+        self.sound_run, self.out, self.stop = sound_run, out, stop
+        self.codes: dict[str, int | None] = {}
+
+    def start(self, spec) -> None:
+        self.codes[spec.name] = None
+        threading.Timer(0.05, self._finish, (spec.name,)).start()
+
+    def _finish(self, name: str) -> None:
+        shutil.copytree(self.sound_run, planner_folder(EPISODE, self.out))
+        self.codes[name] = 0
+        self.stop.set()  # SIGINT, in the very interval in which the planner finished
+
+    def poll(self) -> None:
+        pass
+
+    def returncode(self, name: str) -> int | None:
+        return self.codes.get(name)
+
+
+def test_a_planner_that_finished_as_the_evaluation_was_interrupted_is_kept(tmp_path, sound_run):
+    stop = threading.Event()
+    supervisor = FinishingSupervisor(sound_run, tmp_path, stop)
+    args = argparse.Namespace(jobs=1, out=tmp_path, no_progress=True)
+    done, failures = run_episodes(supervisor, [EPISODE], args, [], NO_PROGRESS, stop)
+    assert (done, failures) == (1, [])
+    assert finished(EPISODE, tmp_path, plain(SHORT))  # published, not left hidden
+
+
+class NoProgress:
+    def of(self, _run_id: str) -> int:
+        return 0
+
+
+NO_PROGRESS = NoProgress()
 
 
 def test_a_killed_and_resumed_evaluation_gives_the_same_table(tmp_path):

@@ -7,6 +7,7 @@ query; the watch must find it busy past the limit, SIGKILL it, and the superviso
 from __future__ import annotations
 
 import threading
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -20,6 +21,8 @@ from mapex.prediction.weights import save_weights
 from services.config import ServicesConfig
 from services.ensemble_client import ZenohEnsemble
 from services.health import PoolWatch
+from services.keys import health_key
+from services.messages import HealthReply
 from services.pool import WorkerSpec
 from services.supervisor import Supervisor
 from services.zenoh_config import open_session, zenoh_config
@@ -30,6 +33,7 @@ WATCHED = ServicesConfig(
     health_check_every_s=0.3,
     health_probe_timeout_s=0.5,
     unresponsive_after_s=2.0,
+    implausible_share=1.0,  # a random-weight network (services/ensemble_client.py)
 )
 START_DEADLINE_S = 60.0
 
@@ -87,3 +91,51 @@ def test_a_worker_stuck_in_a_prediction_is_killed_and_restarted(tmp_path):
     text = "\n".join(lines)
     assert "killing predictor-g2: unresponsive: busy on one prediction for" in text, text
     assert "predictor-g2 exited with -9 (SIGKILL); restarted (1/" in text, text
+
+
+class StubSupervisor:
+    """Every worker runs, as pid 1; kills are only noted."""
+
+    def __init__(self) -> None:
+        self.killed: list[str] = []
+
+    def is_running(self, name: str) -> bool:
+        return True
+
+    def process(self, name: str) -> SimpleNamespace:
+        return SimpleNamespace(pid=1)
+
+    def kill(self, name: str, why: str) -> None:
+        self.killed.append(name)
+
+
+def test_a_health_reply_counts_only_if_it_names_the_worker_probed():
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    session = open_session(zenoh_config(listen=[endpoint], connect=[]))
+    answering = open_session(zenoh_config(connect=[endpoint]))
+    signer = {"worker_id": "impostor"}
+    spec = WorkerSpec("predictor-g2", "services.predictor", member="g2", worker_id="w")
+
+    def on_probe(query) -> None:
+        query.reply(query.key_expr, HealthReply("g2", signer["worker_id"], 0, 0, 0, 0).encode())
+
+    queryable = answering.declare_queryable(health_key("g2", "w"), on_probe)
+    try:
+        watch = PoolWatch(session, StubSupervisor(), [spec], WATCHED)
+        for _ in range(3):
+            watch.check()
+            watch._next_check = 0.0
+            threading.Event().wait(WATCHED.health_probe_timeout_s)
+        assert spec.name not in watch._last_answer  # signed by another worker: ignored
+        signer["worker_id"] = "w"
+
+        def answered() -> bool:
+            watch._next_check = 0.0
+            watch.check()
+            return spec.name in watch._last_answer
+
+        until(answered, "the honest health reply", 5)
+    finally:
+        queryable.undeclare()
+        answering.close()
+        session.close()

@@ -20,7 +20,7 @@ from services.codec import (
     quantise_probability,
 )
 from services.config import ServicesConfig
-from services.messages import CLAIM_FIELDS, STEP_REPLY_ARRAYS, StepReply
+from services.messages import CLAIM_FIELDS, STEP_REPLY_ARRAYS, StepReply, step_key
 from services.protocol import (
     ROBOT_TOPICS,
     AliveKey,
@@ -180,11 +180,11 @@ def test_parse_key_rejects_foreign_keys(key):
 # -------------------------------------------------------------------------------- messages
 
 
-def step_request(seq, cells, done=False, claim=None, token=None) -> StepRequest:
+def step_request(seq, cells, done=False, claim=None, mac=None) -> StepRequest:
     """A step request that moves through `cells`, with a new claim (goal, score, claimed
     cells) when `claim` is given."""
     goal, score, visible = claim if claim is not None else (None, None, None)
-    return StepRequest(seq, cells, done, claim is not None, goal, score, visible, token)
+    return StepRequest(seq, cells, done, claim is not None, goal, score, visible, mac)
 
 
 def step_reply(seq, rng, robots=3, claims=(), shape=(6, 7), finished=False, rays=5) -> StepReply:
@@ -217,8 +217,8 @@ def _sample_messages() -> list[Message]:
     return [
         step_request(4, cells[:3]),
         step_request(0, np.empty((0, 2), np.int32)),
-        step_request(7, cells[:1], done=True, token="s3cret"),
-        step_request(9, [], claim=((12, 30), 2.5, claimed), token="s3cret"),
+        step_request(7, cells[:1], done=True).signed(step_key("s3cret", "run"), "run", 0),
+        step_request(9, [], claim=((12, 30), 2.5, claimed), mac="0123456789abcdef" * 4),
         step_request(9, cells[:2], claim=((12, 30), -math.inf, claimed)),  # a last resort
         StepRequest(3, cells[:1], False, True, None, None, None),  # withdraws its claim
         step_reply(5, rng, claims=(0, 1, 2), shape=(40, 50)),
@@ -762,7 +762,9 @@ def test_corrupted_payloads_decode_or_raise_protocol_errors_only(message):
         (lambda: step_request(1, [], claim=((1, 1), math.nan, np.zeros((2, 2), bool))), "score"),
         (lambda: step_request(1, [], claim=((1, 1), math.inf, np.zeros((2, 2), bool))), "score"),
         (lambda: step_request(1, [], claim=((1, 1), 0.5, np.zeros(4, bool))), "claim_visible"),
-        (lambda: step_request(1, [], token=7), "run_token"),
+        (lambda: step_request(1, [], mac=7), "mac"),
+        (lambda: step_request(1, [], mac="s3cret"), "mac must be 64 lowercase hex"),
+        (lambda: step_request(1, [], mac="AB" * 32), "mac must be 64 lowercase hex"),
         (lambda: WorldInfo("w", (5, 5), 0.0, []), "resolution_m"),
     ],
 )

@@ -11,12 +11,18 @@ from pathlib import Path
 
 import pytest
 from service_processes import free_loopback_port, until
+from up_processes import UpProcess
 
+from services.keys import robot_key
+from services.messages import PoseMessage
 from services.supervisor import ProcessSpec, Supervisor, claim_hub, parse_tcp_endpoint
+from services.zenoh_config import open_session, zenoh_config
 
 HELPERS_DIR = Path(__file__).resolve().parents[1] / "helpers"
 GRACE_S = 3.0  # the default grace; a loaded 2-core machine needs it for a polite child
 STOP_MARGIN_S = 1.0  # stop() must be done within its grace period plus this
+STEPS_BEFORE_STOP = 30  # by then the workers answer re-plans and whole-map predictions
+EXIT_INTERRUPTED = 130  # services.up's exit after Ctrl-C
 
 
 class Lines:
@@ -146,6 +152,45 @@ def test_stop_leaves_no_process_even_when_one_ignores_sigterm(supervised):
     )
     assert supervisor.poll() == []  # a stopped server is not restarted
     supervisor.stop(GRACE_S)  # idempotent
+
+
+def test_stopping_up_while_its_workers_predict_kills_none_of_them(tmp_path):
+    """Ctrl-C of `services.up` mid-run, eight workers busy on a shared 2-core machine: every
+    child stops of SIGTERM within the grace period. A worker leaves a prediction still running
+    after `predictor_drain_s` and skips the interpreter's teardown (seconds under load), which
+    used to outlast the grace and end most workers in SIGKILL."""
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    up = UpProcess(
+        tmp_path / "up.log", "--world", "generated:0", "--listen", endpoint, "--method", "mapex",
+        "--steps", "2000", "--replicas", "2", "--run-prefix", "busy", "--out", str(tmp_path),
+    )  # fmt: skip
+    try:
+        wait_for_step(endpoint, "busy-0", STEPS_BEFORE_STOP)  # re-plans and metrics predicted
+        up.interrupt()
+        assert up.wait(GRACE_S + 30) == EXIT_INTERRUPTED, up.log()
+    finally:
+        up.kill()
+    log = up.log()
+    workers = [name for name in up.children() if name.startswith("predictor-")]
+    assert len(workers) == 8, log
+    assert "SIGKILL" not in log and "still running after" not in log, log
+    for name in workers:
+        assert f"[supervisor] stopped {name} (0)" in log, log
+
+
+def wait_for_step(endpoint: str, run: str, step: int) -> None:
+    """Wait until robot r0 of `run` has published a pose of step `step` or later."""
+    session = open_session(zenoh_config(connect=[endpoint], listen=[]))
+    steps = []
+    subscriber = session.declare_subscriber(
+        robot_key(run, "r0", "pose"),
+        lambda sample: steps.append(PoseMessage.decode(sample.payload.to_bytes()).t),
+    )
+    try:
+        until(lambda: steps and steps[-1] >= step, f"the run to reach step {step}", 300)
+    finally:
+        subscriber.undeclare()
+        session.close()
 
 
 def test_the_context_manager_stops_its_children():

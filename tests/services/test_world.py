@@ -9,7 +9,11 @@ sends every robot's request from a thread of its own, as the robots' planners do
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import hmac
 import logging
+import os
 import re
 import signal
 import subprocess
@@ -47,7 +51,9 @@ from services.messages import (
     StepRequest,
     WorldInfo,
     decode_message,
+    step_key,
 )
+from services.serving import RUN_TOKEN_ENV
 from services.world import StartError, WorldServer, serve
 from services.world_client import WorldUnavailableError, ZenohWorld
 from services.zenoh_config import open_session, zenoh_config
@@ -60,6 +66,8 @@ DEFAULTS = ExplorationConfig()
 
 # the world processes: run -> (starts, --set items); each test drives a world of its own
 DRIVE, RETRY, BAD, SET, SIGINT = "drive_test", "retry_test", "bad_test", "set_test", "sigint_test"
+SNIFFED = "sniffed_test"  # a team world with a run token, whose step queries are read
+SNIFFED_TOKEN = "the-victim-s-run-token-7d1e0c"
 SET_ITEMS = ("motion.cells_per_step=2", "sensor.n_rays=360", "services.team_step_wait_s=0.5")
 WORLDS = {
     DRIVE: ((0, 2), ()),  # a team of two, both driven in lockstep and compared
@@ -67,7 +75,9 @@ WORLDS = {
     BAD: ((3,), ()),
     SET: ((1, 3), SET_ITEMS),  # only r0 drives: r1 is waited for 0.5 s, then stands still
     SIGINT: ((1,), ()),
+    SNIFFED: ((0, 2), ()),
 }
+TOKENS = {SNIFFED: SNIFFED_TOKEN}  # MAPEX_RUN_TOKEN of the world processes that have one
 
 
 def random_walk(occupancy: np.ndarray, start, n_steps: int, cells_per_step: int, seed: int):
@@ -85,22 +95,48 @@ def random_walk(occupancy: np.ndarray, start, n_steps: int, cells_per_step: int,
     return steps
 
 
-def step_request(seq: int, cells=(), done=False, claim=None, token: str | None = None) -> bytes:
+def unsigned_request(seq: int, cells=(), done=False, claim=None) -> StepRequest:
     """A step request through `cells`; `claim` (goal, score, claimed cells) a new claim."""
     goal, score, visible = claim if claim is not None else (None, None, None)
     cells = np.asarray(cells, dtype=np.int32).reshape(-1, 2)
-    return StepRequest(seq, cells, done, claim is not None, goal, score, visible, token).encode()
+    return StepRequest(seq, cells, done, claim is not None, goal, score, visible)
+
+
+def step_request(
+    seq: int, cells=(), done=False, claim=None, token: str | None = None, run="", robot=0
+) -> bytes:
+    """`unsigned_request` encoded; with `token`, signed as robot `robot` of `run`."""
+    request = unsigned_request(seq, cells, done, claim)
+    if token is not None:
+        request = request.signed(step_key(token, run), run, robot)
+    return request.encode()
 
 
 class WorldProcesses(ServiceProcesses):
     """World processes spawned against one hub."""
 
-    def start(self, run: str, starts: tuple[int, ...], settings: tuple[str, ...] = ()):
+    def start(
+        self,
+        run: str,
+        starts: tuple[int, ...],
+        settings: tuple[str, ...] = (),
+        token: str | None = None,
+    ):
+        """`services.world` serving `run`; with `token` as its MAPEX_RUN_TOKEN, as services.up
+        starts it."""
         sets = [flag for item in settings for flag in ("--set", item)]
-        return self.spawn(
-            run, "services.world", "--world", WORLD_SPEC, "--run", run,
+        command = [
+            sys.executable, "-m", "services.world", "--world", WORLD_SPEC, "--run", run,
             "--robots", str(len(starts)), "--starts", *map(str, starts), *sets,
-        )  # fmt: skip
+            "--connect", self.hub_endpoint,
+        ]  # fmt: skip
+        env = {k: v for k, v in os.environ.items() if k != RUN_TOKEN_ENV}
+        if token is not None:
+            env[RUN_TOKEN_ENV] = token
+        with open(self.log_path(run), "wb") as log:
+            process = subprocess.Popen(command, cwd=REPO_ROOT, stdout=log, stderr=log, env=env)
+        self.processes[run] = process
+        return process
 
     def wait_alive(self, session, run: str) -> None:
         self.wait_until_announced(run, lambda: _token_alive(session, run), START_DEADLINE_S)
@@ -115,7 +151,7 @@ def worlds(hub, tmp_path_factory):
     processes = WorldProcesses(hub[1], tmp_path_factory.mktemp("logs"))
     try:
         for run, (starts, settings) in WORLDS.items():
-            processes.start(run, starts, settings)
+            processes.start(run, starts, settings, TOKENS.get(run))
         for run in processes.processes:
             processes.wait_alive(hub[0], run)
         yield processes
@@ -261,10 +297,22 @@ def test_bad_requests_get_an_error_reply_and_the_world_answers_on(hub, worlds):
     start = tuple(map(int, info.starts[0]))
     initial = _step(session, BAD, 0, 0)
     assert isinstance(initial, StepReply)
-    for what, payload in [*_bad_payloads().items(), ("no payload", None)]:
+    visible = np.zeros(info.shape, dtype=bool)
+    misfits = {  # well-formed requests whose claim does not fit this world
+        "claimed cells of another shape": step_request(1, claim=((5, 5), 1.0, visible[:9, :7])),
+        "claim goal below the map": step_request(1, claim=((info.shape[0], 5), 1.0, visible)),
+        "claim goal right of the map": step_request(1, claim=((5, 10**6), 1.0, visible)),
+    }
+    expected = {
+        "skipped seq": "out of order",
+        "no payload": "carries no payload",
+        "claimed cells of another shape": f"claim_visible has shape (9, 7), the map {info.shape}",
+        "claim goal below the map": f"lies outside the {info.shape} map",
+        "claim goal right of the map": f"lies outside the {info.shape} map",
+    }
+    for what, payload in [*_bad_payloads().items(), *misfits.items(), ("no payload", None)]:
         reply = _get(session, key, payload)
         assert isinstance(reply, ErrorReply), what
-        expected = {"skipped seq": "out of order", "no payload": "carries no payload"}
         assert expected.get(what, "malformed step request") in reply.message, what
     assert worlds.processes[BAD].poll() is None
     again = _step(session, BAD, 0, 0)  # the initial step, as cached
@@ -276,6 +324,7 @@ def test_bad_requests_get_an_error_reply_and_the_world_answers_on(hub, worlds):
     log = worlds.log_of(BAD)
     assert "refused a malformed step request" in log
     assert "robot r0: refused motion of step 1" in log and "Traceback" not in log
+    assert "claim_visible has shape (9, 7)" in log
 
 
 def test_a_world_started_with_set_simulates_and_waits_as_set(hub, worlds):
@@ -337,6 +386,112 @@ def _try_get(session, key: str) -> Message | None:
     return decode_message(replies[0].ok.payload.to_bytes()) if replies else None
 
 
+def _team_step(sources: list[ZenohWorld], seq: int, walks: list) -> list:
+    """Every robot's step `seq` through its ZenohWorld (robot k along walks[k]), each from
+    a thread of its own as the planners do; the WorldSteps."""
+    steps: dict[int, object] = {}
+
+    def step(robot: int) -> None:
+        if seq == 0:
+            steps[robot] = sources[robot].initial()
+        else:
+            decision = Decision(robot, walks[robot][seq - 1])
+            steps[robot] = sources[robot].step(seq - 1, [decision])
+
+    threads = [threading.Thread(target=step, args=(k,)) for k in range(len(sources))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(QUERY_TIMEOUT_S + 5)
+    return [steps[k] for k in range(len(sources))]
+
+
+def test_a_sniffer_of_step_queries_can_neither_read_the_token_nor_step_a_robot(hub, worlds):
+    """A client of a plain hub that reads every step query of a run with a token (as the
+    `runner` role may under the ACL router) finds no token in them, and nothing it builds
+    from them moves a robot: the victims' run goes on as if it had not been there."""
+    session = hub[0]
+    info, truth = _fetch(session, SNIFFED)
+    starts = [tuple(map(int, start)) for start in info.starts]
+    walks = [
+        random_walk(truth.occupancy, start, 6, 3, seed=20 + k) for k, start in enumerate(starts)
+    ]
+    sources = [ZenohWorld(session, SNIFFED, k, run_token=SNIFFED_TOKEN) for k in (0, 1)]
+    for source in sources:
+        source.fetch(timeout_s=10.0)
+    sniffer = open_session(zenoh_config(connect=[hub[1]], listen=[]))
+    captured: list[tuple[str, bytes]] = []
+
+    def sniff(query) -> None:  # reads the query and answers nothing
+        payload = b"" if query.payload is None else query.payload.to_bytes()
+        captured.append((str(query.key_expr), payload))
+
+    queryable = sniffer.declare_queryable(f"mapex/@v1/{SNIFFED}/*/step", sniff)
+    try:
+        time.sleep(0.5)  # the sniffer's queryable is known to the hub
+        victims = [_team_step(sources, seq, walks) for seq in range(4)]
+        heard = list(captured)
+        # (a) the token is not in what travels, nor the key made from it
+        key = step_key(SNIFFED_TOKEN, SNIFFED)
+        assert len(heard) >= 8, heard  # two robots, four steps
+        for _, payload in heard:
+            assert SNIFFED_TOKEN.encode() not in payload and key not in payload
+            assert key.hex().encode() not in payload
+            assert StepRequest.decode(payload).mac is not None
+        # (b) what the sniffer builds from them is refused
+        by_robot_seq = {
+            (str(k).rsplit("/", 2)[1], StepRequest.decode(p).seq): StepRequest.decode(p)
+            for k, p in heard
+        }
+        last = by_robot_seq["r0", 3]  # robot 0's request of step 3; the world is at step 4
+        (toward,) = random_walk(truth.occupancy, victims[3][0].scans[0].pose, 1, 1, seed=9)
+        attacks = {
+            "r0": {
+                "its mac on the next seq": dataclasses.replace(last, seq=4),
+                "its mac on the next seq, moving": dataclasses.replace(last, seq=4, cells=toward),
+                "its mac on other cells": dataclasses.replace(last, cells=toward),
+                "its mac on a claim": dataclasses.replace(
+                    last,
+                    seq=4,
+                    claimed=True,
+                    claim_goal=(5, 5),
+                    claim_score=1.0,
+                    claim_visible=np.zeros(info.shape, bool),
+                ),  # fmt: skip
+                "done with its mac": dataclasses.replace(last, seq=4, done=True),
+                "no mac": dataclasses.replace(last, seq=4, mac=None),
+                "a made-up mac": dataclasses.replace(last, seq=4, mac="0" * 64),
+            },
+            "r1": {
+                "robot 0's request as robot 1": last,
+                "robot 0's request as robot 1, next seq": dataclasses.replace(last, seq=4),
+            },
+        }
+        for robot, tries in attacks.items():
+            for what, request in tries.items():
+                reply = _get(sniffer, robot_key(SNIFFED, robot, "step"), request.encode())
+                assert isinstance(reply, ErrorReply), what
+                assert "without this run's token's signature" in reply.message, what
+        replayed = _get(sniffer, robot_key(SNIFFED, "r0", "step"), last.encode())
+        assert isinstance(replayed, StepReply) and replayed.seq == 3  # the cached reply, as
+        assert [tuple(p) for p in replayed.poses] == [
+            v.scans[k].pose for k, v in enumerate(victims[3])
+        ]
+    finally:
+        queryable.undeclare()
+        sniffer.close()
+    # the victims' run is unaffected: every step moves every robot as its planner asked
+    for seq in (4, 5, 6):
+        steps = _team_step(sources, seq, walks)
+        for robot, step in enumerate(steps):
+            assert step.scans[robot].pose == tuple(map(int, walks[robot][seq - 1][-1])), seq
+            assert not step.finished and step.lost == ()
+    assert worlds.processes[SNIFFED].poll() is None
+    log = worlds.log_of(SNIFFED)
+    assert "without this run's token's signature" in log and "Traceback" not in log
+    assert "standing still" not in log and "refused motion" not in log
+
+
 def test_sigint_stops_the_world_cleanly(hub, worlds):
     process = worlds.processes[SIGINT]
     process.send_signal(signal.SIGINT)
@@ -360,6 +515,7 @@ def test_sigint_stops_the_world_cleanly(hub, worlds):
         (["--set", "sensor.nope=1"], "override 'sensor.nope=1': unknown field 'nope'"),
         (["--set", "services.team_step_wait_s=soon"], "'soon' is not a valid float"),
         (["--set", "motion.cells_per_step"], "is not of the form section.field=value"),
+        (["--set", "world.max_cells=100"], "cells (363 x 537), above the limit of 100:"),
     ],
 )
 def test_bad_world_starts_and_flags_are_one_line_errors(flags, message, tmp_path):
@@ -437,13 +593,80 @@ def test_a_refused_motion_leaves_the_robot_where_it_stands_and_the_run_goes_on(w
     assert tuple(moved.poses[0]) == tuple(map(int, cells[-1])) and server.served == 3
 
 
-@pytest.mark.parametrize("token", [None, "", "wrong", "s3cret-but-longer"])
-def test_a_world_with_a_run_token_refuses_steps_without_it(world, token):
-    server = WorldServer(world, [0], SMALL, run_token="s3cret")
-    reply = server.answer_step(0, step_request(0, token=token))
-    assert isinstance(reply, ErrorReply) and "without this run's token" in reply.message
+MAC_RUN, MAC_TOKEN = "mac_test", "s3cret"
+
+
+def _tampered() -> dict[str, bytes]:
+    """Requests for robot 0 of MAC_RUN that a holder of the token did not sign so."""
+    key = step_key(MAC_TOKEN, MAC_RUN)
+    visible = np.zeros((5, 5), dtype=bool)
+    plain = unsigned_request(0, [[3, 4]])
+    claim = unsigned_request(0, [[3, 4]], claim=((2, 2), 1.5, visible))
+    signed, claimed = plain.signed(key, MAC_RUN, 0), claim.signed(key, MAC_RUN, 0)
+    other_cells = visible.copy()
+    other_cells[1, 1] = True
+    old = msgpack.unpackb(plain.encode())  # the token in clear, as requests carried it
+    return {
+        "no mac": plain.encode(),
+        "a random mac": dataclasses.replace(plain, mac="ab" * 32).encode(),
+        "signed with another token": plain.signed(step_key("wrong", MAC_RUN), MAC_RUN, 0).encode(),
+        "signed for another run": plain.signed(step_key(MAC_TOKEN, "other"), "other", 0).encode(),
+        "signed for robot 1": plain.signed(key, MAC_RUN, 1).encode(),
+        "other cells": dataclasses.replace(signed, cells=np.array([[3, 5]], np.int32)).encode(),
+        "no cells": dataclasses.replace(signed, cells=np.zeros((0, 2), np.int32)).encode(),
+        "another seq": dataclasses.replace(signed, seq=1).encode(),
+        "done": dataclasses.replace(signed, done=True).encode(),
+        "claimed": dataclasses.replace(signed, claimed=True).encode(),
+        "another claim goal": dataclasses.replace(claimed, claim_goal=(2, 3)).encode(),
+        "another claim score": dataclasses.replace(claimed, claim_score=9.0).encode(),
+        "other claimed cells": dataclasses.replace(claimed, claim_visible=other_cells).encode(),
+        "the claim dropped": dataclasses.replace(claimed, claim_goal=None).encode(),
+        "the token in clear": msgpack.packb({**old, "run_token": MAC_TOKEN}),
+    }
+
+
+@pytest.mark.parametrize("what", list(_tampered()))
+def test_a_world_with_a_run_token_refuses_requests_not_signed_as_they_are(world, what):
+    """The MAC binds the run, the robot and everything the request asks: a MAC moved to
+    another request, robot or run, made with another token, or none, moves nothing."""
+    server = WorldServer(world, [0], SMALL, run_token=MAC_TOKEN, run=MAC_RUN)
+    reply = server.answer_step(0, _tampered()[what])
+    assert isinstance(reply, ErrorReply), what
+    wanted = "malformed step request" if what == "the token in clear" else "run's token's signature"
+    assert wanted in reply.message and "\n" not in reply.message
     assert server.served == 0 and server.seq == 0  # nothing moved, seq untouched
-    assert isinstance(server.answer_step(0, step_request(0, token="s3cret")), StepReply)
+    key = step_key(MAC_TOKEN, MAC_RUN)
+    good = unsigned_request(0).signed(key, MAC_RUN, 0)
+    assert isinstance(server.answer_step(0, good.encode()), StepReply)
+    assert server.answer_step(0, good.encode()).seq == 0  # sent again: the cached reply
+
+
+def test_a_step_mac_is_the_documented_hmac_and_a_world_without_a_run_refuses_a_token(world):
+    request = unsigned_request(4, [[1, 2]], claim=((3, 4), -np.inf, np.eye(3, dtype=bool)))
+    key = step_key("tok", "run-1")
+    assert key == hmac.new(b"tok", b"mapex step key v1|run-1", hashlib.sha256).digest()
+    message = b"".join(request.signed_bytes("run-1", 2))
+
+    def u64(*values) -> bytes:
+        return b"".join(value.to_bytes(8, "little") for value in values)
+
+    documented = (  # docs/protocol.md, byte by byte
+        u64(21) + b"mapex step request v1" + u64(5) + b"run-1" + u64(2, 4) + b"\x00\x01"
+        + u64(8) + np.array([1, 2], "<i4").tobytes()
+        + b"\x01" + u64(3, 4) + np.array(-np.inf, "<f8").tobytes() + u64(3, 3)
+        + u64(9) + np.eye(3, dtype=np.uint8).tobytes()
+    )  # fmt: skip
+    assert message == documented
+    unclaimed = b"".join(unsigned_request(0).signed_bytes("r", 0))
+    no_claim = u64(0, 0) + b"\x00\x00" + u64(0) + b"\x00"  # robot, seq, flags, no cells, goal
+    assert unclaimed == u64(21) + b"mapex step request v1" + u64(1) + b"r" + no_claim
+    mac = hmac.new(key, message, hashlib.sha256).hexdigest()
+    signed = request.signed(key, "run-1", 2)
+    assert signed.mac == mac and signed.signed_by(key, "run-1", 2)
+    assert StepRequest.decode(signed.encode()).signed_by(key, "run-1", 2)  # survives the wire
+    assert not signed.signed_by(key, "run-1", 1) and not signed.signed_by(key, "run-12", 2)
+    with pytest.raises(ValueError, match="run id"):
+        WorldServer(world, [0], SMALL, run_token="tok")
 
 
 def test_world_server_knows_its_robots_starts_world_and_settings(world):
@@ -472,15 +695,18 @@ def test_world_server_refuses_bad_starts(world, starts, match):
 # ------------------------------------------------------ a team in lockstep (threads = planners)
 
 
+TEAM_RUN, TEAM_TOKEN = "team_test", "tok"
+
+
 @pytest.fixture
 def team():
     team_world = load_world("generated:0")
     cells = team_start_cells(team_world, [0], 2, SMALL)
-    return WorldServer(team_world, cells, SMALL, run_token="tok", services=QUICK)
+    return WorldServer(team_world, cells, SMALL, run_token=TEAM_TOKEN, services=QUICK, run=TEAM_RUN)
 
 
-def team_request(seq: int, cells=(), done=False, claim=None, token="tok") -> bytes:
-    return step_request(seq, cells, done, claim, token)
+def team_request(seq: int, cells=(), done=False, claim=None, robot=0, token=TEAM_TOKEN) -> bytes:
+    return step_request(seq, cells, done, claim, token, TEAM_RUN, robot)
 
 
 def together(server, payloads: dict[int, bytes | None]) -> dict[int, object]:
@@ -498,7 +724,7 @@ def together(server, payloads: dict[int, bytes | None]) -> dict[int, object]:
 
 
 def test_every_robot_gets_every_scan_and_claim_of_the_step(team):
-    first = together(team, {0: team_request(0), 1: team_request(0)})
+    first = together(team, {0: team_request(0), 1: team_request(0, robot=1)})
     assert first[0] is first[1] and isinstance(first[0], StepReply)
     np.testing.assert_array_equal(first[0].poses, team.starts)
     start = team.starts[0]
@@ -506,36 +732,38 @@ def test_every_robot_gets_every_scan_and_claim_of_the_step(team):
     visible = np.zeros(team.world.shape, dtype=bool)
     visible[5, 5] = True
     second = together(team, {0: team_request(1, [step], claim=((30, 30), 2.5, visible)),
-                             1: team_request(1)})  # fmt: skip
+                             1: team_request(1, robot=1)})  # fmt: skip
     reply = second[0]
     assert second[1] is reply
     assert tuple(reply.poses[0]) == step and tuple(reply.poses[1]) == tuple(team.starts[1])
     assert list(reply.claim_state) == [1, 0] and reply.claim_scores[0] == 2.5
     assert len(reply.claim_visible) == 1 and reply.visible_of(0)[5, 5]  # new claims only
     assert not reply.stood_still.any()
-    assert team.answer_step(1, team_request(1)) is reply  # a retry gets the same reply
+    assert team.answer_step(1, team_request(1, robot=1)) is reply  # a retry gets the same reply
     assert team.served == 4  # two robots, two steps: a retry scans nothing
 
 
 def test_a_step_waits_for_every_robot_and_the_late_one_gets_the_step_it_missed(team):
-    together(team, {0: team_request(0), 1: team_request(0)})
+    together(team, {0: team_request(0), 1: team_request(0, robot=1)})
     start = team.starts[0]
     began = time.monotonic()
     (reply,) = together(team, {0: team_request(1, [(start[0], start[1] + 1)])}).values()
     assert time.monotonic() - began >= QUICK.team_step_wait_s - 0.05  # it waited for r1
     assert list(reply.stood_still) == [False, True]
-    late = team.answer_step(1, team_request(1, [(team.starts[1][0] + 1, team.starts[1][1])]))
+    late_cells = [(team.starts[1][0] + 1, team.starts[1][1])]
+    late = team.answer_step(1, team_request(1, late_cells, robot=1))
     assert late is reply and tuple(reply.poses[1]) == tuple(team.starts[1])  # not applied
-    replies = together(team, {0: team_request(2), 1: team_request(2)})  # in step again
+    replies = together(team, {0: team_request(2), 1: team_request(2, robot=1)})  # in step again
     assert replies[0] is replies[1] and not replies[0].stood_still.any()
 
 
 def test_a_team_with_nothing_left_is_finished_without_a_step(team):
-    together(team, {0: team_request(0), 1: team_request(0)})
-    one_done = together(team, {0: team_request(1, done=True), 1: team_request(1)})
+    together(team, {0: team_request(0), 1: team_request(0, robot=1)})
+    one_done = together(team, {0: team_request(1, done=True), 1: team_request(1, robot=1)})
     assert not one_done[0].finished and len(one_done[0].poses) == 2  # the other goes on
     served = team.served
-    replies = together(team, {0: team_request(2, done=True), 1: team_request(2, done=True)})
+    both_done = {0: team_request(2, done=True), 1: team_request(2, done=True, robot=1)}
+    replies = together(team, both_done)
     assert replies[0].finished and len(replies[0].poses) == 0 and team.served == served
 
 
@@ -547,7 +775,8 @@ def test_a_robot_alone_with_nothing_left_is_finished(world):
 
 
 def test_team_steps_without_the_token_or_out_of_order_are_refused(team):
-    assert "without this run's token" in team.answer_step(0, team_request(0, token="x")).message
+    unsigned = team.answer_step(0, team_request(0, token="x"))
+    assert "without this run's token's signature" in unsigned.message
     reply = team.answer_step(0, team_request(3))
     assert isinstance(reply, ErrorReply) and "out of order" in reply.message
     assert "malformed step request" in team.answer_step(0, b"\x00junk").message
@@ -555,9 +784,10 @@ def test_team_steps_without_the_token_or_out_of_order_are_refused(team):
 
 
 def test_a_lost_robot_is_not_waited_for_and_its_claim_expires(team):
-    together(team, {0: team_request(0), 1: team_request(0)})
+    together(team, {0: team_request(0), 1: team_request(0, robot=1)})
     visible = np.zeros(team.world.shape, dtype=bool)
-    together(team, {0: team_request(1), 1: team_request(1, claim=((30, 30), 1.0, visible))})
+    claim = team_request(1, claim=((30, 30), 1.0, visible), robot=1)
+    together(team, {0: team_request(1), 1: claim})
     team.planner_gone(1)
     began = time.monotonic()
     (reply,) = together(team, {0: team_request(2)}).values()

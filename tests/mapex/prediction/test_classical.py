@@ -202,18 +202,20 @@ def test_registry_rejects_unknown_names() -> None:
 
 
 @pytest.mark.parametrize(
-    "member",
+    "settings",
     [
-        InpaintMemberConfig(method="fast"),  # type: ignore[arg-type]
-        InpaintMemberConfig(scale=0),
-        InpaintMemberConfig(radius_cells=0),
-        InpaintMemberConfig(prior=1.5),
-        InpaintMemberConfig(wall_level=1.0),
+        {"method": "fast"},
+        {"scale": 0},
+        {"radius_cells": 0},
+        {"prior": 1.5},
+        {"wall_level": 1.0},
     ],
 )
-def test_bad_member_settings_are_rejected(member: InpaintMemberConfig) -> None:
-    with pytest.raises(ValueError):
-        ClassicalInpaintingEnsemble(ClassicalPredictorConfig(members=(member,)))
+def test_bad_member_settings_are_rejected(settings: dict) -> None:
+    with pytest.raises(ValueError):  # the configuration itself refuses them (ConfigError)
+        ClassicalInpaintingEnsemble(
+            ClassicalPredictorConfig(members=(InpaintMemberConfig(**settings),))
+        )
 
 
 def test_no_members_and_bad_maps_are_rejected(predictor: ClassicalInpaintingEnsemble) -> None:

@@ -323,10 +323,10 @@ def test_mean_state_dict_averages_floats_and_keeps_counters():
 @pytest.mark.parametrize(
     "setting, message",
     [
-        ("polish_runs=0", "polish_runs=0: G needs at least one polish run"),
-        ("main_steps=-5", "main_steps=-5: a step count cannot be negative"),
-        ("main_polish_steps=-1", "main_polish_steps=-1: a step count cannot be negative"),
-        ("warmup_share=1.5", "warmup_share=1.5: choose a share between 0 and 1"),
+        ("polish_runs=0", "polish_runs must be >= 1, got 0"),
+        ("main_steps=-5", "main_steps must be >= 0, got -5"),
+        ("main_polish_steps=-1", "main_polish_steps must be >= 0, got -1"),
+        ("warmup_share=1.5", "warmup_share must be in (0, 1), got 1.5"),
     ],
 )
 def test_impossible_schedules_are_one_line_errors(setting, message, tmp_path, capsys):

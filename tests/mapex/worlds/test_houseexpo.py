@@ -165,7 +165,7 @@ def test_corridor_worlds_are_seeded():
 
 
 def test_a_world_with_no_house_that_fits_is_a_one_line_error():
-    config = HouseExpoConfig(max_house_side_cells=10, max_draws=5)
+    config = HouseExpoConfig(min_house_side_cells=5, max_house_side_cells=10, max_draws=5)
     with pytest.raises(WorldError, match="could not draw 6 HouseExpo houses in 5 draws"):
         corridor_world(0, config, HAND_MADE)
 

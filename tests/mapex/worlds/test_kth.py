@@ -99,7 +99,7 @@ def _truncated(path: Path) -> None:
         (_object_array, "not a loadable .npy file"),
         (_npz_archive, "not a .npy array file"),
         (_corrupt, "not a loadable .npy file"),
-        (_truncated, "not a loadable .npy file"),
+        (_truncated, "the file holds 72 bytes of data"),
         (lambda p: np.save(p, np.full((4, 4), 254.0)), "dtype float64"),
         (lambda p: np.save(p, np.full((4, 4), 254, dtype=np.int16)), "dtype int16"),
         (lambda p: np.save(p, np.full((2, 4, 4), 254, dtype=np.uint8)), "expected a 2-D map"),

@@ -1,0 +1,133 @@
+"""No input crashes a command (issue #53, defects 6-9): a forged map header, a starts file
+that never ends, absurd team and pool sizes, bad `--set` values and negative seeds are
+each one line on stderr and exit 2, before any process starts or any data is read."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from service_processes import REPO_ROOT, free_loopback_port
+
+FORGED_SHAPE = (200_000, 200_000)  # 40 GB of uint8 claimed by a 100-byte file
+AT_ONCE = 4  # commands run side by side (each only starts Python and fails)
+COMMAND_TIMEOUT_S = 120  # a command that reads /dev/zero or waits on a FIFO runs into this
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory) -> dict[str, str]:
+    """{name: path}: a map whose occupancy header is forged, and a FIFO starts file."""
+    root = tmp_path_factory.mktemp("inputs")
+    forged = root / "forged"
+    forged.mkdir()
+    with (forged / "occ_map.npy").open("wb") as handle:
+        header = {"descr": "|u1", "fortran_order": False, "shape": FORGED_SHAPE}
+        np.lib.format.write_array_header_1_0(handle, header)
+        handle.write(bytes(16))
+    np.save(forged / "valid_space.npy", np.ones((4, 4), np.uint8))
+    os.mkfifo(root / "starts.fifo")
+    return {"forged": str(forged), "fifo": str(root / "starts.fifo"), "out": str(root / "out")}
+
+
+def _listen() -> list[str]:
+    return ["--listen", f"tcp/127.0.0.1:{free_loopback_port()}"]
+
+
+RUN = ["mapex", "run", "--steps", "5", "--no-progress"]
+UP = ["services.up", "--steps", "5", "--no-progress"]
+EVALUATE = ["services.evaluate", "--steps", "5", "--no-progress", "--no-report"]
+WORLD = ["services.world", "--run", "bad"]
+PLANNER = ["services.planner", "--run", "bad"]
+AUDIT = ["mapex.audit", "--maps", "generated:0", "--no-progress"]
+TRAIN = ["mapex.training.train"]
+
+CASES = {
+    # defect 6: a forged .npy header is refused from the header, before any data is read
+    "run forged map": (RUN + ["--world", "{forged}"], "its map of shape (200000, 200000)"),
+    "up forged map": (UP + ["--world", "{forged}"], "its map of shape (200000, 200000)"),
+    "evaluate forged map": (EVALUATE + ["--maps", "{forged}"], "its map of shape (200000, 200000)"),
+    "world forged map": (WORLD + ["--world", "{forged}"], "its map of shape (200000, 200000)"),
+    # defect 7: a starts file that never ends, or never opens, is not read
+    "evaluate /dev/zero starts": (
+        EVALUATE + ["--maps", "generated:0", "--starts-file", "/dev/zero"],
+        "/dev/zero is not a regular file (a character device)",
+    ),
+    "evaluate FIFO starts": (
+        EVALUATE + ["--maps", "generated:0", "--starts-file", "{fifo}"],
+        "starts.fifo is not a regular file (a FIFO)",
+    ),
+    # defect 8: team and pool sizes are capped by what the machine holds
+    "run robots": (
+        RUN + ["--method", "nearest_team", "--robots", "100000"],
+        "team.max_robots (64)",
+    ),
+    "up robots": (UP + ["--method", "nearest_team", "--robots", "100000"], "team.max_robots (64)"),
+    "evaluate robots": (
+        EVALUATE + ["--maps", "generated:0", "--methods", "nearest_team", "--robots", "100000"],
+        "team.max_robots (64)",
+    ),
+    "up runs": (UP + ["--runs", "100000"], "more than this machine holds"),
+    "up replicas": (UP + ["--replicas", "100000"], "more than this machine holds"),
+    "evaluate jobs": (
+        EVALUATE + ["--maps", "generated:0", "--jobs", "100000"],
+        "--jobs 100000 planners and 4 x --replicas 1 workers: 100004 processes, more than this "
+        "machine holds",
+    ),
+    "audit jobs": (AUDIT + ["--jobs", "100000"], "more than this machine holds"),
+    # defect 9: every value is checked when the configuration is built
+    "run section": (RUN + ["--set", "sensor=1"], "override 'sensor=1': a section takes no value"),
+    "run n_rays": (RUN + ["--set", "sensor.n_rays=0"], "sensor.n_rays must be in [1, 100000]"),
+    "run cells_per_step": (
+        RUN + ["--set", "motion.cells_per_step=0"],
+        "motion.cells_per_step must be in [1, 65535]",
+    ),
+    "up section": (UP + ["--set", "sensor=1"], "a section takes no value"),
+    "up timeout": (
+        UP + ["--set", "services.step_timeout_s=-1"],
+        "services.step_timeout_s must be > 0",
+    ),
+    "evaluate section": (EVALUATE + ["--maps", "generated:0", "--set", "sensor=1"], "a section"),
+    "world section": (WORLD + ["--set", "sensor=1"], "a section takes no value"),
+    "audit section": (AUDIT + ["--set", "sensor=1"], "a section takes no value"),
+    "run seed": (RUN + ["--seed", "-1"], "seed -1 is out of range"),
+    "up seed": (UP + ["--seed", "-1"], "seed -1 is out of range"),
+    "evaluate seeds": (EVALUATE + ["--maps", "generated:0", "--seeds", "0,-1"], "seed -1 is out"),
+    "planner seed": (PLANNER + ["--seed", "-1"], "seed -1 is out of range"),
+    "audit seed": (AUDIT + ["--seed", "-1"], "seed -1 is out of range"),
+    "train seed": (TRAIN + ["--set", "seed=-1"], "seed must be in [0, 4294967295], got -1"),
+}
+
+
+def run_command(args: list[str], inputs: dict[str, str]) -> subprocess.CompletedProcess:
+    module, *rest = [arg.format(**inputs) for arg in args]
+    if module in ("services.up", "services.evaluate", "services.world"):
+        rest += _listen()
+    if module in ("services.up", "services.evaluate"):
+        rest += ["--out", inputs["out"]]
+    return subprocess.run(
+        [sys.executable, "-m", module, *rest], cwd=REPO_ROOT, capture_output=True, text=True,
+        timeout=COMMAND_TIMEOUT_S,
+    )  # fmt: skip
+
+
+def test_bad_input_is_one_line_and_exit_2_on_every_command(inputs):
+    with ThreadPoolExecutor(AT_ONCE) as pool:
+        done = {name: pool.submit(run_command, args, inputs) for name, (args, _) in CASES.items()}
+        results = {name: future.result() for name, future in done.items()}
+    wrong = []
+    for name, (_, expected) in CASES.items():
+        completed = results[name]
+        lines = completed.stderr.strip().splitlines()
+        if (
+            completed.returncode != 2
+            or "Traceback" in completed.stderr
+            or not lines
+            or expected not in lines[-1]
+        ):
+            wrong.append(f"{name}: exit {completed.returncode}, said {completed.stderr[-600:]!r}")
+    assert not wrong, "\n".join(wrong)
+    assert not os.path.exists(inputs["out"])  # nothing ran

@@ -1,0 +1,204 @@
+"""A seeded fuzz of every service key during a real run: thousands of random and mutated
+messages of every type, and the run still answers and ends with the in-process result.
+
+Seeds are real messages (a world's world_info and ground truth, a worker's health and
+prediction, a step request and reply, pose, scan, maps and metrics heard on the wire);
+each is mutated at the msgpack level (a field dropped, retyped, made huge, negative, NaN,
+an array header lying about its shape or dtype, another type or schema) or at the byte
+level (flips, truncation, junk appended), and sent to a key a service listens on: a query
+to every queryable, a put to every subscribed topic. Bounded in count and in time.
+"""
+
+from __future__ import annotations
+
+import time
+
+import msgpack
+import numpy as np
+import torch
+from service_processes import free_loopback_port, until
+from up_processes import UpProcess, read_run
+
+from mapex.config import ExplorationConfig
+from mapex.episode import run_episode
+from mapex.grid import FREE, UNKNOWN
+from mapex.prediction.learned import LearnedEnsemble
+from mapex.results import write_results
+from mapex.worlds import load_world
+from services.keys import (
+    ROBOT_TOPICS,
+    alive_planner_key,
+    alive_predictor_pattern,
+    health_key,
+    parse_key,
+    predict_key,
+    robot_key,
+    run_key,
+)
+from services.messages import ErrorReply, PredictRequest, StepRequest
+from services.zenoh_config import open_session, zenoh_config
+
+FLOOR = "50015847"  # the largest KTH development floor: a run long enough to fuzz
+RUN = "fuzz-0"
+STEPS = 1000
+METHOD = "mapex"  # predicts at every re-plan: the run lasts while the fuzz goes on
+MESSAGES = 3000  # in all, spread over every key
+TIME_BUDGET_S = 120.0  # the fuzzing stops here even if fewer were sent
+SEED = 53
+
+
+def real_messages(session) -> list[bytes]:
+    """Encoded messages of every type the run's services exchange, heard or asked for."""
+    seeds: list[bytes] = []
+    for key in (run_key(RUN, "world_info"), run_key(RUN, "ground_truth")):
+        seeds += [reply.ok.payload.to_bytes() for reply in session.get(key, timeout=5.0)]
+    small = np.full((16, 16), UNKNOWN, dtype=np.uint8)
+    small[4:12, 4:12] = FREE
+    request = PredictRequest(1, small, 5.0).encode()
+    seeds.append(request)
+    for alive in session.liveliness().get(alive_predictor_pattern(), timeout=2.0):
+        worker = parse_key(str(alive.ok.key_expr))
+        for key, payload in (
+            (health_key(worker.member, worker.worker_id), None),
+            (predict_key(worker.member, worker.worker_id), request),
+        ):
+            for reply in session.get(key, payload=payload, timeout=10.0):
+                sample = reply.ok if reply.ok is not None else reply.err
+                seeds.append(sample.payload.to_bytes())
+    cells = np.array([[1, 1]], dtype=np.int32)
+    seeds.append(StepRequest(0, cells, False, False, None, None, None).encode())
+    visible = np.zeros((8, 8), dtype=bool)
+    seeds.append(StepRequest(3, cells, False, True, (2, 2), 1.5, visible).encode())
+    seeds.append(ErrorReply("x").encode())
+    heard: list[bytes] = []
+    subscriber = session.declare_subscriber(
+        f"mapex/@v1/{RUN}/**", lambda sample: heard.append(sample.payload.to_bytes())
+    )
+    time.sleep(3.0)
+    subscriber.undeclare()
+    by_type: dict[str, bytes] = {}
+    for payload in heard:
+        by_type.setdefault(msgpack.unpackb(payload, raw=False).get("type", ""), payload)
+    return seeds + list(by_type.values())
+
+
+ODD_VALUES = [
+    None, -1, 0, 2**63 - 1, -(2**63), 1e308, float("nan"), float("inf"), "x" * 5000, "",
+    [], {}, [1, 2, 3], True, b"\x00" * 64,
+    {"dtype": "int32", "shape": [10**6, 10**6], "zlib": False, "data": b""},
+    {"dtype": "float64", "shape": [2, 2], "zlib": True, "data": b"not zlib"},
+    {"dtype": "object", "shape": [1], "zlib": False, "data": b"\x00" * 8},
+    {"dtype": "uint8", "shape": [-1, 4], "zlib": False, "data": b""},
+]  # fmt: skip
+
+
+def mutate(seed: bytes, rng: np.random.Generator, types: list[str]) -> bytes:
+    """One mutation of an encoded message (module doc)."""
+    choice = rng.integers(8)
+    if choice == 0:  # byte flips
+        data = bytearray(seed)
+        for _ in range(rng.integers(1, 8)):
+            data[rng.integers(len(data))] = int(rng.integers(256))
+        return bytes(data)
+    if choice == 1:  # truncated
+        return seed[: rng.integers(len(seed))]
+    if choice == 2:  # random bytes of random length
+        return rng.bytes(int(rng.integers(0, 2048)))
+    fields = msgpack.unpackb(seed, raw=False)
+    names = [name for name in fields if name != "schema"]
+    if choice == 3 and names:  # a field dropped
+        fields.pop(names[rng.integers(len(names))])
+    elif choice == 4:  # another type, or another schema
+        if rng.random() < 0.5:
+            fields["type"] = types[rng.integers(len(types))]
+        else:
+            fields["schema"] = ODD_VALUES[rng.integers(len(ODD_VALUES))]
+    elif choice == 5:  # a field added
+        fields[f"extra{rng.integers(9)}"] = ODD_VALUES[rng.integers(len(ODD_VALUES))]
+    elif names:  # a field retyped or made absurd
+        fields[names[rng.integers(len(names))]] = ODD_VALUES[rng.integers(len(ODD_VALUES))]
+    return msgpack.packb(fields, use_bin_type=True)
+
+
+def fuzz(session, seeds: list[bytes], worker_keys: list[str]) -> int:
+    """Send mutated seeds to every key until MESSAGES are sent or the time is up."""
+    rng = np.random.default_rng(SEED)
+    types = sorted({msgpack.unpackb(s, raw=False).get("type", "") for s in seeds})
+    queried = [run_key(RUN, "world_info"), run_key(RUN, "ground_truth")]
+    queried += [robot_key(RUN, "r0", "step"), *worker_keys]
+    queried += [robot_key(RUN, "r0", topic) for topic in ROBOT_TOPICS]  # latest-value queryables
+    put = [robot_key(RUN, "r0", topic) for topic in ROBOT_TOPICS]
+    put += [run_key(RUN, "world_info"), run_key(RUN, "ground_truth")]
+    keys = [(key, True) for key in queried] + [(key, False) for key in put]
+    began, sent = time.monotonic(), 0
+    while sent < MESSAGES and time.monotonic() - began < TIME_BUDGET_S:
+        key, query = keys[sent % len(keys)]
+        payload = mutate(seeds[rng.integers(len(seeds))], rng, types)
+        if query:
+            session.get(key, payload=payload, timeout=1.0)  # replies are not awaited
+        else:
+            session.put(key, payload)
+        sent += 1
+        if sent % 50 == 0:
+            time.sleep(0.05)  # a flood, not a denial of service of the test machine
+    return sent
+
+
+def answering(session) -> bool:
+    """Whether the world and every worker still answer a well-formed query."""
+    if not list(session.get(run_key(RUN, "world_info"), timeout=5.0)):
+        return False
+    workers = list(session.liveliness().get(alive_predictor_pattern(), timeout=2.0))
+    for alive in workers:
+        worker = parse_key(str(alive.ok.key_expr))
+        if not list(session.get(health_key(worker.member, worker.worker_id), timeout=5.0)):
+            return False
+    return len(workers) == 4
+
+
+def test_thousands_of_mutated_messages_on_every_key_harm_no_process_and_no_result(
+    tmp_path, kth_dev_dir
+):
+    world_spec = str(kth_dev_dir / FLOOR)
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    up = UpProcess(
+        tmp_path / "up.log", "--world", world_spec, "--listen", endpoint, "--run-prefix", "fuzz",
+        "--out", str(tmp_path / "runs"), "--method", METHOD, "--steps", str(STEPS),
+    )  # fmt: skip
+    session = open_session(zenoh_config(connect=[endpoint], listen=[]))
+    try:
+        until(
+            lambda: list(session.liveliness().get(alive_planner_key(RUN, "r0"), timeout=1.0)),
+            "the planner to start",
+            120,
+        )
+        until(lambda: answering(session), "the world and four workers to answer", 120)
+        workers = [parse_key(str(a.ok.key_expr)) for a in session.liveliness().get(
+            alive_predictor_pattern(), timeout=2.0)]  # fmt: skip
+        worker_keys = [predict_key(w.member, w.worker_id) for w in workers]
+        worker_keys += [health_key(w.member, w.worker_id) for w in workers]
+        seeds = real_messages(session)
+        types = {msgpack.unpackb(s, raw=False).get("type") for s in seeds}
+        assert {"world_info", "ground_truth", "health", "predict_reply", "step_request"} <= types
+        sent = fuzz(session, seeds, worker_keys)
+        assert sent >= 1000, sent
+        assert up.process.poll() is None, "the run ended before the fuzz did: make it longer"
+        assert answering(session), up.log()
+        assert up.wait() == 0, up.log()
+    finally:
+        session.close()
+        up.kill()
+    log = up.log()
+    assert "restarted" not in log and "Traceback" not in log, log[-5000:]
+    metrics, trajectory, curves = read_run(tmp_path / "runs" / f"{RUN}-r0")
+    world = load_world(world_spec)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as one worker computes
+    try:
+        config = ExplorationConfig(steps=STEPS)
+        alone = run_episode(world, METHOD, LearnedEnsemble(), 0, 0, config)
+    finally:
+        torch.set_num_threads(threads)
+    expected = read_run(write_results(alone, world, tmp_path / "in_process"))
+    np.testing.assert_array_equal(trajectory, expected[1])
+    assert metrics["auc"]["coverage"] == expected[0]["auc"]["coverage"]
