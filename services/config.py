@@ -215,7 +215,8 @@ class RunConfig(Checked):
             try:
                 config = apply_overrides(config, [path])
             except ConfigError as error:
-                raise ConfigError(str(error).replace(f"'{path}'", f"'{item}'")) from None
+                message = str(error).replace(f"'{path}'", f"'{item}'")
+                raise ConfigError(message.replace("exploration.", "")) from None
         return config
 
     def describe(self) -> str:
