@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from acl_router import make_role_certificates
 from service_processes import (
     REPO_ROOT,
     RouterProcess,
@@ -368,24 +369,6 @@ def test_a_rogue_user_receives_nothing(sessions):
 # ------------------------------------------------------------------ certificate common names
 
 
-def _make_role_certificates(directory: Path, roles: tuple[str, ...]) -> None:
-    """A CA, a router certificate for localhost and a client certificate per CN (P-256)."""
-    new_key = ["req", "-nodes", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1"]
-    _openssl(
-        directory, *new_key, "-x509", "-subj", "/CN=ca", "-keyout", "ca-key.pem", "-out", "ca.pem"
-    )
-    (directory / "san.ext").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
-    sign = ["x509", "-req", "-CA", "ca.pem", "-CAkey", "ca-key.pem", "-CAcreateserial"]
-    for name in ("router", *roles):
-        key, request = f"{name}-key.pem", f"{name}.csr"
-        _openssl(directory, *new_key, "-subj", f"/CN={name}", "-keyout", key, "-out", request)
-        _openssl(directory, *sign, "-extfile", "san.ext", "-in", request, "-out", f"{name}.pem")
-
-
-def _openssl(directory: Path, *args: str) -> None:
-    subprocess.run(["openssl", *args], cwd=directory, check=True, capture_output=True)
-
-
 def _tls(config: zenoh.Config, directory: Path, files: dict[str, str]) -> zenoh.Config:
     tls = {key: str(directory / name) for key, name in files.items()}
     config.insert_json5("transport/link/protocols", json.dumps(["tls"]))
@@ -397,7 +380,7 @@ def _tls(config: zenoh.Config, directory: Path, files: dict[str, str]) -> zenoh.
 def test_certificate_common_names_pick_the_role(tmp_path):
     """The same rules by CN: over mutual TLS without passwords, `mapex-planner` may publish
     the status and `mapex-viewer` may not."""
-    _make_role_certificates(tmp_path, ("mapex-planner", "mapex-viewer"))
+    make_role_certificates(tmp_path, ("mapex-planner", "mapex-viewer"))
     port = free_loopback_port()
     config = zenoh_config(listen=[f"tls/127.0.0.1:{port}"], config_file=ACL_FILE)
     config.insert_json5("transport/auth/usrpwd/dictionary_file", "null")  # CNs only
