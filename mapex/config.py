@@ -518,7 +518,10 @@ def argparse_type(parse: Callable[[str], T]) -> Callable[[str], T]:
     return checked
 
 
-def add_override_argument(parser: argparse.ArgumentParser) -> None:
+def add_override_argument(
+    parser: argparse.ArgumentParser,
+    help: str = "override a configuration field, e.g. visibility.stop_rule=accumulate (repeatable)",
+) -> None:
     """--set SECTION.FIELD=VALUE (repeatable) into `args.overrides` (see `apply_overrides`)."""
     parser.add_argument(
         "--set",
@@ -526,5 +529,5 @@ def add_override_argument(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="SECTION.FIELD=VALUE",
-        help="override a configuration field, e.g. visibility.stop_rule=accumulate (repeatable)",
+        help=help,
     )

@@ -15,6 +15,7 @@ from mapex.config import (
     Checked,
     ConfigError,
     ExplorationConfig,
+    add_override_argument,
     apply_overrides,
     check_process_count,
     positive,
@@ -247,12 +248,8 @@ def _changed_fields(config: Any, default: Any, prefix: str) -> list[str]:
 
 def add_run_config_argument(parser: argparse.ArgumentParser) -> None:
     """--set SECTION.FIELD=VALUE (repeatable) into `args.overrides`, for `RunConfig`."""
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="SECTION.FIELD=VALUE",
-        help="override a setting of the run (repeatable): an exploration field, e.g. "
+    add_override_argument(
+        parser,
+        "override a setting of the run (repeatable): an exploration field, e.g. "
         "motion.cells_per_step=2, or a services one, e.g. services.predict_timeout_s=20",
     )

@@ -322,7 +322,7 @@ def claim_hub(endpoint: str, services: ServicesConfig = DEFAULT_SERVICES) -> boo
                 return False
             if error.errno != errno.EADDRINUSE:
                 raise
-    return not _accepts_connections(family, address, services.hub_probe_timeout_s)
+    return _connect_refusal(family, address, services.hub_probe_timeout_s) is not None
 
 
 def parse_tcp_endpoint(endpoint: str, protocols: tuple[str, ...] = ("tcp",)) -> tuple[str, int]:
@@ -358,23 +358,21 @@ def endpoint_silence(endpoint: str, timeout_s: float) -> str | None:
         return f"cannot resolve host {host!r}"
     reasons = []
     for family, _, _, _, address in addresses:
-        with socket.socket(family, socket.SOCK_STREAM) as probe:
-            probe.settimeout(timeout_s)
-            try:
-                probe.connect(address)
-                return None
-            except TimeoutError:
-                reasons.append(f"no answer within {timeout_s:g} s")
-            except OSError as error:
-                reasons.append((error.strerror or str(error)).lower())
+        reason = _connect_refusal(family, address, timeout_s)
+        if reason is None:
+            return None
+        reasons.append(reason)
     return "; ".join(dict.fromkeys(reasons))
 
 
-def _accepts_connections(family: int, address: tuple, timeout_s: float) -> bool:
+def _connect_refusal(family: int, address: tuple, timeout_s: float) -> str | None:
+    """Why a TCP connect to `address` failed, or None when something accepted it."""
     with socket.socket(family, socket.SOCK_STREAM) as probe:
         probe.settimeout(timeout_s)
         try:
             probe.connect(address)
-            return True
-        except OSError:
-            return False
+            return None
+        except TimeoutError:
+            return f"no answer within {timeout_s:g} s"
+        except OSError as error:
+            return (error.strerror or str(error)).lower()
