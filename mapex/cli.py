@@ -84,8 +84,16 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         default=None,
         metavar="FILE.mcap",
-        help="also write a rosbag2-compatible MCAP of the run (ROS 2 and Foxglove topics, "
-        "for Foxglove, Lichtblick and `ros2 bag play`; needs the ros extra)",
+        help="also write the run as a rosbag2 bag in one MCAP file (ROS 2 topics, CDR: "
+        "`ros2 bag play`, rosbags, Foxglove, Lichtblick; needs the ros extra)",
+    )
+    run.add_argument(
+        "--record-foxglove",
+        type=Path,
+        default=None,
+        metavar="FILE.mcap",
+        help="also write the run's Foxglove channels (protobuf foxglove.Grid, PoseInFrame, "
+        "PosesInFrame) as an MCAP file of their own (needs the ros extra)",
     )
     add_override_argument(run)
     run.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -109,21 +117,26 @@ def predictor_options(args: argparse.Namespace) -> dict:
     return {}
 
 
-def _open_recording(path: Path | None, world, method: str):
-    """The run's MCAP recording, or None without --record (ConfigError, one line, when the
-    ros extra is missing or the file cannot be written)."""
-    if path is None:
+def _open_recording(args: argparse.Namespace, world, method: str):
+    """The run's MCAP recordings (--record, --record-foxglove), or None without either
+    (ConfigError, one line, when the ros extra is missing or a file cannot be written)."""
+    paths = {"--record": args.record, "--record-foxglove": args.record_foxglove}
+    if args.record is None and args.record_foxglove is None:
         return None
     from mapex.interop.episode_recording import EpisodeRecording
-    from mapex.interop.mcap_file import record_path_problem
+    from mapex.interop.mcap_file import recording_flags_problem
     from mapex.interop.ros_messages import MissingExtraError
 
-    if (problem := record_path_problem(path)) is not None:
-        raise ConfigError(f"--record {problem}")
+    if (problem := recording_flags_problem(paths)) is not None:
+        raise ConfigError(problem)
+    flags = " / ".join(flag for flag, path in paths.items() if path is not None)
     try:
-        return EpisodeRecording(path, f"{world.name}_{method}", world.shape, world.resolution_m)
+        return EpisodeRecording(
+            args.record, f"{world.name}_{method}", world.shape, world.resolution_m,
+            foxglove_path=args.record_foxglove,
+        )  # fmt: skip
     except (MissingExtraError, OSError) as error:
-        raise ConfigError(f"--record: {error}") from None
+        raise ConfigError(f"{flags}: {error}") from None
 
 
 def run_command(args: argparse.Namespace) -> int:
@@ -143,7 +156,7 @@ def run_command(args: argparse.Namespace) -> int:
     config = replace(config, steps=resolve_steps(args.steps, world))
     team_start_cells(world, [args.start], args.robots, config)  # a bad start: no work
     check_destination(args.out)
-    recording = _open_recording(args.record, world, args.method)
+    recording = _open_recording(args, world, args.method)
     predictor = make_predictor(args.predictor, **predictor_options(args))
     with tqdm(
         total=config.steps,
@@ -165,7 +178,7 @@ def run_command(args: argparse.Namespace) -> int:
             )  # fmt: skip
         finally:
             if recording is not None:
-                print(f"recorded {recording.close()} messages -> {args.record}", file=sys.stderr)
+                print(f"recorded {recording.close()}", file=sys.stderr)
     out_dir = destination(args.out, result)
     try:
         write_results(result, world, out_dir)

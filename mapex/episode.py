@@ -22,14 +22,14 @@ from mapex.grid import Cell
 from mapex.methods import records_team
 from mapex.methods.claims import Claim
 from mapex.prediction.base import Predictor
+from mapex.recorder import COVERAGE_REACHED as COVERAGE_REACHED  # the ends a run may have
+from mapex.recorder import IOU_REACHED as IOU_REACHED
 from mapex.recorder import MetricCurves, MetricRecorder
 from mapex.sensor import Scan
 from mapex.simulator import Simulator
 from mapex.team.starts import team_start_cells
 from mapex.team.team import Decision, Team
 from mapex.worlds import StartSpec, World, normalise_start
-
-IOU_REACHED = "iou_reached"  # the run ended because G's IoU reached `config.until_iou`
 
 StepListener = Callable[[int, list[Explorer], MetricRecorder], None]
 """Called after each step t (1..T) with the explorers decided here and the recorder."""
@@ -90,7 +90,8 @@ class EpisodeResult:
     curves: MetricCurves
     trajectory: np.ndarray  # int (n + 1, 2): pose after the initial scan, then after each step
     finished_at: int | None  # step at which the robot gave up (early termination)
-    # "budget" (T reached), "explored" (no frontier left), "unreachable" or IOU_REACHED
+    # "budget" (T reached), "explored" (no frontier left), "unreachable", IOU_REACHED or
+    # COVERAGE_REACHED
     end_reason: str
     stats: ExplorerStats
     final_observed: np.ndarray
@@ -156,8 +157,8 @@ def run_episode(
     team.observe(source.initial())
     finished_at, end_reason = None, "budget"
     for t in range(config.steps + 1):
-        if recorder.at_step(t, team.observed, config.until_iou) and t < config.steps:
-            finished_at, end_reason = t, IOU_REACHED
+        if (reason := recorder.at_step(t, team.observed, config.until_iou)) and t < config.steps:
+            finished_at, end_reason = t, reason
             recorder.hold_to_end(t, config.steps, team.observed)
             break
         if t == config.steps:

@@ -1,5 +1,5 @@
 """Run metrics of docs/algorithms.md#metrics: coverage, occupied-class IoU, topological
-understanding, AUC."""
+understanding, AUC, and a robot's idle steps."""
 
 from __future__ import annotations
 
@@ -126,6 +126,13 @@ def _clean_path_flags(parent, wall, goals, start_flat):
             state[chain[j]] = _CLEAN if above == _CLEAN and not wall[chain[j]] else _DIRTY
         result[i] = state[goals[i]] == _CLEAN
     return result
+
+
+def idle_steps(trajectory: np.ndarray) -> int:
+    """The steps of a trajectory (int (n + 1, 2): the pose before the first step, then after
+    each) at which the robot did not move: it stood still while the run went on."""
+    poses = np.asarray(trajectory).reshape(-1, 2)
+    return int(np.count_nonzero((poses[1:] == poses[:-1]).all(axis=1)))
 
 
 def curve_auc(values: Sequence[float] | np.ndarray) -> float:

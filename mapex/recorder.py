@@ -1,6 +1,7 @@
 """Samples the metrics of one run (docs/algorithms.md#metrics): coverage and IoU every 50 steps,
 TU every 100, and the first step at which coverage and IoU reach each of
-`MetricsConfig.reach_levels` (docs/algorithms.md#time-to-level).
+`MetricsConfig.reach_levels` (docs/algorithms.md#time-to-level); says when a run may stop
+(`until_iou`, `metrics.until_coverage`).
 
 IoU and TU judge the map the robot would hand over: P_t = known cells of O_t,
 unknown cells from the main predictor G thresholded at 0.5 (with no predictor,
@@ -28,6 +29,10 @@ from mapex.metrics import (
 )
 from mapex.prediction.base import EnsemblePrediction, Predictor
 from mapex.worlds.base import World
+
+IOU_REACHED = "iou_reached"  # the run ended because G's IoU reached `config.until_iou`
+# the run ended because coverage reached `metrics.until_coverage`
+COVERAGE_REACHED = "coverage_reached"
 
 
 @dataclass
@@ -80,27 +85,34 @@ class MetricRecorder:
     def is_sample_step(self, t: int) -> bool:
         return t % self.config.sample_every_steps == 0
 
-    def at_step(self, t: int, observed: np.ndarray, until_iou: float | None = None) -> bool:
+    def at_step(self, t: int, observed: np.ndarray, until_iou: float | None = None) -> str | None:
         """Step `t`'s metrics of O_t (every step: coverage levels; sample steps: the samples).
-        True when `until_iou` is given and G's IoU has reached it at this step's sample."""
+        Why the run may end here, or None: IOU_REACHED when `until_iou` is given and G's IoU
+        has reached it at this step's sample, COVERAGE_REACHED when coverage has reached
+        `metrics.until_coverage`."""
         coverage_now = self.reach.track(t, observed)
+        if self._pending is not None and t - self._pending[0] >= self.config.complete_after_steps:
+            self.flush()  # the sample taken `complete_after_steps` ago: published now
         for level, step in self.curves.reached["coverage"].items():
             if step is None and coverage_now >= level:
                 self.curves.reached["coverage"][level] = t
+        enough = self.config.until_coverage
+        stop = COVERAGE_REACHED if enough is not None and coverage_now >= enough else None
         if not self.is_sample_step(t):
-            return False
+            return stop
         self.record(t, observed)
         if until_iou is None:
-            return False
+            return stop
         self.flush()
-        return self.curves.iou[-1] >= until_iou
+        return IOU_REACHED if self.curves.iou[-1] >= until_iou else stop
 
     def record(self, t: int, observed: np.ndarray) -> None:
         """Sample every metric due at step `t` for the observed map O_t.
 
         G's whole-map prediction for the sample is asked for now and used when the sample
-        is completed, by the next `record` or by `flush`: a remote ensemble computes it
-        while exploration goes on (the numbers are the same either way).
+        is completed, `metrics.complete_after_steps` later (or by the next `record` or
+        `flush`): a remote ensemble computes it while exploration goes on (the numbers are
+        the same either way).
         """
         self.flush()
         observed = observed.copy()

@@ -5,7 +5,9 @@ snapshots.npz holds, at the steps of `MetricsConfig.snapshot_steps` the run reac
 judged the map, `prediction` uint8 (n, rows, cols): G's whole-map map, q / 255.
 
 A folder is written under a temporary name and renamed into place, so a reader
-(or a resumed batch evaluation) never sees half a run.
+(or a resumed batch evaluation) never sees half a run. An experiment's folder
+(`services.evaluate`) also holds campaign.json, its episodes and settings (`claim_campaign`),
+which its shards check and `mapex.report` lists missing episodes from.
 """
 
 from __future__ import annotations
@@ -18,14 +20,17 @@ import math
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+import uuid
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
 
-from mapex.episode import IOU_REACHED, EpisodeResult
+from mapex.episode import COVERAGE_REACHED, IOU_REACHED, EpisodeResult
 from mapex.grid import quantise_probability
+from mapex.io_limits import read_text
 from mapex.methods import records_team
+from mapex.metrics import idle_steps
 from mapex.plotting import plot_episode
 from mapex.worlds.base import World
 from mapex.worlds.starts import StartSpec, start_label
@@ -50,9 +55,10 @@ def check_output_folder(folder: Path) -> Path:
     folder = _not_a_file(Path(folder))
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        probe = folder / f".probe-{os.getpid()}"
-        probe.write_bytes(b"mapex")
-        probe.unlink()
+        handle, probe = tempfile.mkstemp(prefix=".probe-", dir=folder)  # unique: shards share it
+        with os.fdopen(handle, "wb") as written:
+            written.write(b"mapex")
+        os.unlink(probe)
     except OSError as error:
         raise OutputError(f"cannot write results to {folder}: {_reason(error)}") from None
     return folder
@@ -110,6 +116,7 @@ def describe_end(result: EpisodeResult) -> str:
         "explored": "no frontier left",
         "unreachable": "no frontier reachable",
         IOU_REACHED: f"G's IoU reached {result.config.until_iou}",
+        COVERAGE_REACHED: f"coverage reached {result.config.metrics.until_coverage}",
     }
     return f"{why[result.end_reason]} at step {result.finished_at}"
 
@@ -134,6 +141,10 @@ def summary(result: EpisodeResult) -> dict:
             "iou": result.curves.iou[-1],
             "tu": _json_float(result.curves.tu[-1]),
         },
+        # every robot's path, in metres, summed (the team's), and each robot's steps
+        # standing still while the run went on
+        "path_length_m": round(sum(result.path_lengths_m), 2),
+        "idle_steps": [idle_steps(path) for path in result.trajectories],
         "replans": result.stats.replans,
         "approach_goals": result.stats.approach_goals,
         "path_repairs": result.stats.path_repairs,
@@ -232,6 +243,126 @@ def move_into_place(folder: Path, out_dir: Path) -> Path:
         shutil.rmtree(out_dir)
     folder.rename(out_dir)
     return out_dir
+
+
+# ---------------------------------------------------------------- an experiment's campaign
+
+CAMPAIGN_FILE = "campaign.json"  # an experiment's episodes and settings, in its results folder
+
+
+class CampaignError(ValueError):
+    """A results folder's campaign.json cannot be read or belongs to another campaign
+    (one line)."""
+
+
+def campaign_record(episodes: Mapping[str, int], config: dict, shards: int = 1) -> dict:
+    """What campaign.json holds: every episode of the experiment, all shards' (its results
+    folder name -> its step budget, in the canonical order that shards are dealt from),
+    the plain exploration configuration they share (without `steps`, which is per episode)
+    and the number of shards it is split into (1: not sharded)."""
+    shared = {key: value for key, value in config.items() if key != "steps"}
+    return {"episodes": dict(episodes), "config": shared, "shards": shards}
+
+
+def read_campaign(folder: Path) -> dict | None:
+    """The campaign.json of `folder`, or None when it has none; CampaignError (one line)
+    when it is unreadable or no campaign record."""
+    path = Path(folder) / CAMPAIGN_FILE
+    if not path.exists():
+        return None
+    try:
+        record = json.loads(read_text(path))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError, OSError) as error:
+        raise CampaignError(f"{path}: unreadable ({' '.join(str(error).split())})") from None
+    episodes = record.get("episodes") if isinstance(record, dict) else None
+    if not (isinstance(episodes, dict) and isinstance(record.get("shards"), int)):
+        raise CampaignError(f"{path}: not a campaign record (episodes and shards)")
+    return record
+
+
+def campaign_difference(written: dict, mine: dict) -> str | None:
+    """How the campaign record `written` differs from `mine` (one phrase), or None: the
+    shard count, the episodes (names, budgets and order, from which the shards are dealt)
+    and the configuration (`config_difference`, fields both have)."""
+    if written.get("shards") != mine["shards"]:
+        return f"it is split into {written.get('shards')} shard(s), not {mine['shards']}"
+    theirs, ours = written["episodes"], mine["episodes"]
+    for name, steps in ours.items():
+        if name not in theirs:
+            return f"it has no episode {name}"
+        if theirs[name] != steps:
+            return f"it runs {name} for {theirs[name]} steps, not {steps}"
+    extra = [name for name in theirs if name not in ours]
+    if extra:
+        return f"it also has episode {extra[0]}"
+    if list(theirs) != list(ours):
+        return "it lists the episodes in another order (--maps, --methods, --starts, --seeds)"
+    differing = config_difference(written.get("config"), mine["config"])
+    return None if differing is None else f"it runs with another {differing}"
+
+
+def claim_campaign(folder: Path, record: dict) -> None:
+    """Write `record` (`campaign_record`) as `folder`/campaign.json, or check it against the
+    one there. The file appears whole and only once (a hard link of a written file, where the
+    file system has them), so of several shards starting at once one writes it and the
+    others compare. An unreadable one is a CampaignError, and so is a different one when
+    either is split into shards (shards of two campaigns would run the same episodes into one
+    place); an unsharded run replaces an unsharded one (it resumes a changed experiment:
+    services.evaluate runs again each episode that differs)."""
+    path = Path(folder) / CAMPAIGN_FILE
+    written = path.with_name(f".{CAMPAIGN_FILE}.{os.getpid()}.{uuid.uuid4().hex}")  # unique
+    try:
+        with written.open("x") as partial:  # as readable as the runs (mkstemp's are private)
+            partial.write(json.dumps(record, indent=1) + "\n")
+        if _create_once(written, path):
+            return
+        try:
+            theirs = read_campaign(folder)
+        except CampaignError as error:
+            raise CampaignError(f"{error}: delete it once no evaluation writes there") from None
+        problem = None if theirs is None else campaign_difference(theirs, record)
+        if problem is None:
+            return
+        if record["shards"] > 1 or theirs["shards"] > 1:
+            raise CampaignError(
+                f"{path} is another campaign's ({problem}): give this one another --out, or "
+                f"delete that file once none of its shards runs"
+            )
+        os.replace(written, path)
+    finally:
+        written.unlink(missing_ok=True)
+
+
+def _create_once(written: Path, path: Path) -> bool:
+    """Give `written`'s content the name `path` unless that exists; whether it did."""
+    try:
+        os.link(written, path)
+        return True
+    except FileExistsError:
+        return False
+    except OSError:  # no hard links here (some network file systems): create exclusively
+        try:
+            with path.open("x") as handle:
+                handle.write(written.read_text())
+            return True
+        except FileExistsError:
+            return False
+
+
+def config_difference(written: object, expected: dict | None, prefix: str = "") -> str | None:
+    """The first dotted field (e.g. `path_gain.top_k`) whose value differs between two plain
+    configurations, looking only at fields both have (so a field added later does not count)."""
+    if expected is None or not isinstance(written, dict):
+        return None if expected is None else "configuration (none recorded)"
+    for key in sorted(expected.keys() & written.keys()):
+        mine, theirs = expected[key], written[key]
+        if isinstance(mine, dict):
+            found = config_difference(theirs, mine, f"{prefix}{key}.")
+            if found is not None:
+                return found
+        elif mine != theirs:
+            return f"{prefix}{key} ({theirs!r}, not {mine!r})"
+    return None
 
 
 def _write_curves(result: EpisodeResult, path: Path) -> None:

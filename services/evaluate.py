@@ -2,12 +2,14 @@
 
     python -m services.evaluate --maps DIR [DIR|generated:SEED ...] [--methods ...]
         [--ablations] [--starts 0,1,2,3 | --starts-file FILE] [--steps 1000] [--seeds 0]
-        [--jobs 2] [--out results/evaluation] [--set SECTION.FIELD=VALUE ...] [Zenoh flags]
+        [--jobs 2] [--out results/evaluation] [--shard K/N] [--set SECTION.FIELD=VALUE ...]
+        [Zenoh flags]
 
 Runs every episode in a planner process of its own (`--jobs` at a time) on one shared
 predictor pool, keeps each finished episode in `<out>` so that the same command resumes,
-and writes the report to `<out>/report/`. How it runs, resumes and checks its input:
-docs/design.md#an-experiment-servicesevaluate.
+and writes the report to `<out>/report/`. `--shard K/N` runs the K-th (0-based) of N
+slices of the episodes (`mapex.shards`), for clusters: docs/deploy.md. How it runs, resumes
+and checks its input: docs/design.md#an-experiment-servicesevaluate.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import logging
 import os
 import shlex
 import shutil
+import socket
 import sys
 import threading
 import time
@@ -46,7 +49,16 @@ from mapex.methods import (
 )
 from mapex.prediction.config import inference_from_args
 from mapex.report.runs import ReportError, load_run
-from mapex.results import METRICS_FILE, check_output_folder, episode_name, move_into_place
+from mapex.results import (
+    METRICS_FILE,
+    campaign_record,
+    check_output_folder,
+    claim_campaign,
+    config_difference,
+    episode_name,
+    move_into_place,
+)
+from mapex.shards import Shard, parse_shard, shard_items
 from mapex.worlds import StartSpec, WorldError, load_world, world_spec_help
 from mapex.worlds.starts import start_argument, start_cell, start_label
 from services.bridges.outside_tools import (
@@ -219,22 +231,6 @@ def run_problem(episode: Episode, folder: Path, config: dict | None = None) -> s
     return None if differing is None else f"it was run with another {differing}"
 
 
-def config_difference(written: object, expected: dict | None, prefix: str = "") -> str | None:
-    """The first dotted field (e.g. `path_gain.top_k`) whose value differs between two plain
-    configurations, looking only at fields both have (so a field added later does not count)."""
-    if expected is None or not isinstance(written, dict):
-        return None if expected is None else "configuration (none recorded)"
-    for key in sorted(expected.keys() & written.keys()):
-        mine, theirs = expected[key], written[key]
-        if isinstance(mine, dict):
-            found = config_difference(theirs, mine, f"{prefix}{key}.")
-            if found is not None:
-                return found
-        elif mine != theirs:
-            return f"{prefix}{key} ({theirs!r}, not {mine!r})"
-    return None
-
-
 def planner_folder(episode: Episode, out_dir: Path) -> Path:
     """Where the episode's planner writes its results: hidden until `publish` renames it.
 
@@ -253,10 +249,15 @@ def publish(episode: Episode, out_dir: Path) -> bool:
     return True
 
 
-def remove_staging(out_dir: Path) -> int:
-    """Delete half-written folders a kill left behind (names start with '.'); how many."""
+def remove_staging(out_dir: Path, episodes: list[Episode] | None = None) -> int:
+    """Delete half-written folders a kill left behind (names start with '.'); how many.
+    Given `episodes` (a shard's, in a folder other shards may be writing to), only theirs:
+    `.<name>.planner` and the planner's own staging `..<name>.planner.*`."""
     hidden = out_dir.glob(".*") if out_dir.is_dir() else []
     stale = [p for p in hidden if p.is_dir() and p.name != BROKEN_DIR]
+    if episodes is not None:
+        mine = {planner_folder(e, out_dir).name for e in episodes}
+        stale = [p for p in stale if p.name in mine or p.name[1:].rsplit(".", 1)[0] in mine]
     for path in stale:
         shutil.rmtree(path, ignore_errors=True)
     return len(stale)
@@ -352,6 +353,7 @@ def _collect_exited(
 
 def main(args: argparse.Namespace) -> int:
     began = time.monotonic()
+    shard = None if args.shard is None else parse_shard(args.shard)
     run_config = RunConfig(ExplorationConfig(until_iou=args.until_iou))
     run_config = run_config.with_overrides(args.overrides)
     exploration, services = run_config.exploration, run_config.services
@@ -374,12 +376,21 @@ def main(args: argparse.Namespace) -> int:
     )
     check_output_folder(args.out)
     check_outside_tool_arguments(args)
-    if remove_staging(args.out):
+    mine = episodes if shard is None else shard_items(episodes, shard, lambda e: e.method)
+    every = {e.name: e.steps for e in episodes}
+    plain = plain_config(exploration, episodes[0])
+    claim_campaign(args.out, campaign_record(every, plain, 1 if shard is None else shard.count))
+    if remove_staging(args.out, None if shard is None else mine):
         log.info("removed half-written runs of an interrupted evaluation")
-    todo = [e for e in episodes if not finished(e, args.out, plain_config(exploration, e))]
-    already = len(episodes) - len(todo)
-    log.info("%d episodes: %d already finished, %d to run", len(episodes), already, len(todo))
+    todo = [e for e in mine if not finished(e, args.out, plain_config(exploration, e))]
+    already = len(mine) - len(todo)
+    whose = "" if shard is None else f"shard {shard}: {len(mine)} of the "
+    counts = (len(episodes), already, len(todo))
+    log.info("%s%d episodes: %d already finished, %d to run", whose, *counts)
     check_hub_answers(args.connect, services)
+    if shard is not None and not (args.listen or args.connect):
+        args.listen = [free_hub_endpoint()]  # shards on one machine serve a hub each
+        log.info("shard %s serves its hub on %s", shard, args.listen[0])
     own_config, flags = hub_session_config(args, services)
     stop = stop_on_signals()
     session = open_session(own_config)
@@ -391,7 +402,7 @@ def main(args: argparse.Namespace) -> int:
         args.threads,
         flags,
         inference_from_args(args),
-        id_prefix=f"ev{os.getpid()}",
+        id_prefix=f"ev{os.getpid()}" + ("" if shard is None else f"s{shard.index}"),
         settings=run_config.as_overrides(),
     )
     watch = PoolWatch(session, supervisor, workers, services)
@@ -412,14 +423,17 @@ def main(args: argparse.Namespace) -> int:
         progress.close()
         session.close()
     wall_s = time.monotonic() - began
-    _log_invocation(args, len(episodes), done, failures, wall_s, stop.is_set())
+    _log_invocation(args, len(episodes), done, failures, wall_s, stop.is_set(), shard)
     if stop.is_set():
         print(f"interrupted after {done} episodes; rerun to resume", file=sys.stderr)
         return EXIT_INTERRUPTED
     for line in failures:
         log.error("%s", line)
     print(f"{done} episodes run in {wall_s / 60:.1f} min -> {args.out}", file=sys.stderr)
-    if not args.no_report:
+    if shard is not None:  # the report needs every shard: mapex.report merges their folders
+        merge = f"python -m mapex.report {args.out} [the other shards' folders]"
+        print(f"shard {shard}: once all {shard.count} are done, {merge}", file=sys.stderr)
+    elif not args.no_report:
         from mapex.report import main as report_main
 
         if report_main([str(args.out)]) != 0:
@@ -434,9 +448,11 @@ def _log_invocation(
     failures: list[str],
     wall_s: float,
     interrupted: bool,
+    shard: Shard | None = None,
 ) -> None:
     record = {
         "command": "python -m services.evaluate " + shlex.join(sys.argv[1:]),
+        **({} if shard is None else {"shard": str(shard)}),
         "episodes": total,
         "ran": done,
         "failed": len(failures),
@@ -491,6 +507,14 @@ def build_parser() -> argparse.ArgumentParser:
     add_budget_arguments(parser)
     parser.add_argument("--jobs", type=int, default=2, help="episodes at once (default 2)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="default: %(default)s")
+    parser.add_argument(
+        "--shard",
+        default=None,
+        metavar="K/N",
+        help="run only shard K (0-based: $SLURM_ARRAY_TASK_ID, $JOB_COMPLETION_INDEX) of N "
+        "balanced slices of the episodes, into its own or a shared --out, without the report "
+        "(python -m mapex.report merges the shards' folders); docs/deploy.md",
+    )
     add_run_config_argument(parser)
     add_pool_arguments(parser)
     parser.add_argument("--no-report", action="store_true", help="skip the report at the end")
@@ -498,6 +522,14 @@ def build_parser() -> argparse.ArgumentParser:
     add_outside_tool_arguments(parser)
     add_zenoh_arguments(parser, HUB_HELP)
     return parser
+
+
+def free_hub_endpoint() -> str:
+    """A loopback endpoint on a port that is free now, for a shard's own hub: shards that
+    share a machine (tasks of a Slurm array on one node) then never meet."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{probe.getsockname()[1]}"
 
 
 def _seeds(text: str) -> list[int]:

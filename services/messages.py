@@ -105,13 +105,15 @@ def decode_message(
 class ScanReply(Message):
     """One robot's scan after a step, published on `scan`: a `mapex.sensor.Scan`.
 
-    pose (row, col); n_cells uint16 (n_rays,); hit bool (n_rays,).
+    pose (row, col); n_cells uint16 (n_rays,); hit bool (n_rays,); t the step it was taken
+    after (as the pose's), None when not said (older worlds, and inside the world).
     """
 
     TYPE: ClassVar[str] = "scan_reply"
     pose: Cell
     n_cells: np.ndarray
     hit: np.ndarray
+    t: int | None = None
 
     def __post_init__(self) -> None:
         _set(self, "pose", _checked_cell(self.TYPE, "pose", self.pose))
@@ -119,27 +121,31 @@ class ScanReply(Message):
         _check_array(self.TYPE, "hit", self.hit, np.bool_, 1)
         if self.n_cells.shape != self.hit.shape:
             raise ProtocolError(f"{self.TYPE}: n_cells and hit must have one length")
+        if self.t is not None:
+            _set(self, "t", _checked_step(self.TYPE, self.t))
 
     @classmethod
-    def from_scan(cls, scan: Scan) -> ScanReply:
-        """The reply carrying `scan`."""
-        return cls(scan.pose, scan.n_cells, scan.hit)
+    def from_scan(cls, scan: Scan, t: int | None = None) -> ScanReply:
+        """The reply carrying `scan` (taken after step `t`)."""
+        return cls(scan.pose, scan.n_cells, scan.hit, t)
 
     def to_scan(self) -> Scan:
         """The `mapex.sensor.Scan` this reply carries (arrays copied, then made read-only)."""
         return Scan(self.pose, self.n_cells.copy(), self.hit.copy())
 
     def _fields(self, config: ServicesConfig) -> dict[str, Any]:
-        return {
+        fields = {
             "pose": list(self.pose),
             "n_cells": encode_array(self.n_cells, config),
             "hit": encode_array(self.hit, config),
         }
+        return fields if self.t is None else {**fields, "t": self.t}
 
     @classmethod
     def _read(cls, reader: FieldReader) -> ScanReply:
         pose = reader.cell("pose")
-        return cls(pose, reader.array("n_cells", "uint16", 1), reader.array("hit", "bool", 1))
+        n_cells, hit = reader.array("n_cells", "uint16", 1), reader.array("hit", "bool", 1)
+        return cls(pose, n_cells, hit, _whole(reader.added_number("t")))
 
 
 STEP_KEY_CONTEXT = b"mapex step key v1|"  # step_key: HMAC(run token, this + run id)

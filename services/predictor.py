@@ -50,6 +50,7 @@ from services.messages import ErrorReply, HealthReply, PredictReply, PredictRequ
 from services.serving import (
     QueryServers,
     configure_logging,
+    exit_on_signals,
     return_freed_memory,
     stop_on_signals,
     wait_for,
@@ -314,4 +315,8 @@ def _cuda_available() -> bool:
 
 
 if __name__ == "__main__":
+    # From here a signal ends the process at once until it serves: loading torch's weights
+    # takes seconds on a loaded machine, and a worker stopped then would finish loading
+    # first and outlast services.up's grace period (the graceful stop begins with serving).
+    exit_on_signals(until_serving=True)
     exit_now(run_cli())

@@ -63,7 +63,8 @@ class RunPublisher:
             list(self.keys.values()),
             blocking_keys=[self.keys[topic] for topic in MUST_ARRIVE_TOPICS],
         )
-        self._pending: dict[str, Message] = {}
+        # topic -> messages to put: the newest only, or every one for MUST_ARRIVE_TOPICS
+        self._pending: dict[str, list[Message | _Lazy]] = {}
         self._busy = False
         self._closed = False
         self._flushing = False
@@ -114,21 +115,20 @@ class RunPublisher:
         self.status(result.steps, "finished", detail)
 
     def _publish_metrics(self, curves: MetricCurves, degraded: bool) -> None:
-        """The newest metric sample, when there is one not published yet."""
-        if len(curves.steps) == self._samples_seen:
-            return
+        """Every metric sample not published yet, in order (a curve has no gaps)."""
+        for k in range(self._samples_seen, len(curves.steps)):
+            tu = curves.tu[k]
+            self._hand_over(
+                "metrics",
+                MetricsMessage(
+                    curves.steps[k],
+                    curves.coverage[k],
+                    curves.iou[k],
+                    None if not np.isfinite(tu) else tu,
+                    degraded,
+                ),
+            )
         self._samples_seen = len(curves.steps)
-        tu = curves.tu[-1]
-        self._hand_over(
-            "metrics",
-            MetricsMessage(
-                curves.steps[-1],
-                curves.coverage[-1],
-                curves.iou[-1],
-                None if not np.isfinite(tu) else tu,
-                degraded,
-            ),
-        )
 
     def flush(self, timeout_s: float = 5.0) -> None:
         """Wait until every message handed over so far has been put."""
@@ -148,8 +148,13 @@ class RunPublisher:
         self.latest.close()
 
     def _hand_over(self, topic: str, message: Message | _Lazy) -> None:
+        """Queue `message`: it replaces a pending one of its topic, unless the topic must
+        arrive (every status and metric sample is put, in order)."""
         with self._changed:
-            self._pending[topic] = message
+            if topic in MUST_ARRIVE_TOPICS:
+                self._pending.setdefault(topic, []).append(message)
+            else:
+                self._pending[topic] = [message]
             self._changed.notify_all()
 
     def _send_loop(self) -> None:
@@ -160,12 +165,13 @@ class RunPublisher:
                     return
                 batch, self._pending = self._pending, {}
                 self._busy = True
-            for topic, message in batch.items():
-                try:
-                    ready = message.build() if isinstance(message, _Lazy) else message
-                    self.latest.put(self.keys[topic], ready)
-                except (zenoh.ZError, ValueError) as error:
-                    log.warning("could not publish %s: %s", topic, error)
+            for topic, messages in batch.items():
+                for message in messages:
+                    try:
+                        ready = message.build() if isinstance(message, _Lazy) else message
+                        self.latest.put(self.keys[topic], ready)
+                    except (zenoh.ZError, ValueError) as error:
+                        log.warning("could not publish %s: %s", topic, error)
             with self._changed:
                 self._busy = False
                 self._changed.notify_all()

@@ -191,10 +191,11 @@ class WorldServer:
         """Robot `robot`'s planner is gone: stop waiting for it."""
         with self._clock:
             if robot not in self.lost:
-                # a planner leaves after the budget's last step, or when G's IoU reached the
-                # level (the world does not see that): only an earlier exit is a loss
+                # a planner leaves after the budget's last step, or when G's IoU or coverage
+                # reached the level (the world does not see that): only an earlier exit is a loss
                 budget = self.config.steps
-                ended = self.seq > budget or self.finished or self.config.until_iou is not None
+                stops = (self.config.until_iou, self.config.metrics.until_coverage)
+                ended = self.seq > budget or self.finished or stops != (None, None)
                 level = logging.INFO if ended else logging.WARNING
                 log.log(level, "robot %s is lost: its planner is gone", robot_id(robot))
                 self.lost.add(robot)
@@ -399,7 +400,8 @@ class _StepPublisher:
             robot, seq, reply = item
             try:
                 self.publishers[robot, "pose"].put(PoseMessage(seq, reply.pose).encode())
-                self.publishers[robot, "scan"].put(reply.encode())
+                scan = ScanReply(reply.pose, reply.n_cells, reply.hit, t=seq)  # with its step
+                self.publishers[robot, "scan"].put(scan.encode())
             except zenoh.ZError as error:
                 log.warning("could not publish step %d of robot %d: %s", seq, robot, error)
 

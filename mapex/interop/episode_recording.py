@@ -5,12 +5,14 @@ fed from the explorers after each step instead of from Zenoh: every robot's pose
 step, its planned path when it changes, the ensemble mean after each re-plan that
 predicted, and the observed map and the whole trajectory every `map_every_steps` steps and
 at the end (a whole map per step would make a 1000-step file of hundreds of MB, and a
-trajectory per step costs time and space quadratic in the run's length).
+trajectory per step costs time and space quadratic in the run's length). Stamped in
+simulation time (`mapex.interop.sim_time`): step t at `DEFAULT_SIM_CLOCK.stamp_ns(t)`. The
+rosbag2 bag (`--record`) and the Foxglove file (`--record-foxglove`) are
+`mapex.interop.mcap_file.Recordings`.
 """
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,8 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from mapex.explorer import Explorer
-from mapex.interop.mcap_file import McapRecording
+from mapex.interop.mcap_file import Recordings
 from mapex.interop.ros_messages import MapFrame
+from mapex.interop.sim_time import DEFAULT_SIM_CLOCK
 from mapex.interop.topics import Outgoing, RunTopics
 
 
@@ -31,20 +34,23 @@ class RecordingConfig:
 
 
 class EpisodeRecording:
-    """An MCAP recording of one in-process run: call `step` after every step (a team's
-    explorers in robot order), then `close`."""
+    """The MCAP recordings of one in-process run (the bag at `path`, the Foxglove file at
+    `foxglove_path`, either may be None): call `step` after every step (a team's explorers
+    in robot order), then `close`."""
 
     def __init__(
         self,
-        path: Path,
+        path: Path | None,
         run: str,
         shape: tuple[int, int],
         resolution_m: float,
         config: RecordingConfig | None = None,
+        foxglove_path: Path | None = None,
     ) -> None:
         self.config = config or RecordingConfig()
-        self.recording = McapRecording(path)
-        self.topics = RunTopics(run, MapFrame(*shape, resolution_m))
+        self.recording = Recordings(path, foxglove_path)
+        frame = MapFrame(*shape, resolution_m)
+        self.topics = RunTopics(run, frame, with_foxglove=self.recording.with_foxglove)
         self._last_path: dict[int, bytes] = {}
         self._last_prediction: dict[int, object] = {}
         self._last_t = -1
@@ -52,7 +58,7 @@ class EpisodeRecording:
 
     def step(self, t: int, explorers: Sequence[Explorer]) -> None:
         """Record the state after step `t`."""
-        stamp_ns = time.time_ns()
+        stamp_ns = DEFAULT_SIM_CLOCK.stamp_ns(t)
         self._last_t, self._explorers = t, explorers
         for k, explorer in enumerate(explorers):
             robot = f"r{k}"
@@ -63,16 +69,15 @@ class EpisodeRecording:
             self._plan(k, robot, explorer, stamp_ns)
             self._mean(k, robot, explorer, stamp_ns)
 
-    def close(self) -> int:
-        """Record the final observed maps (when the last step did not), finish the file and
-        return the number of messages written."""
-        stamp_ns = time.time_ns()
+    def close(self) -> str:
+        """Record the final observed maps (when the last step did not), at the last step's
+        stamp, finish the files and say what was written ('N messages -> PATH' each)."""
+        stamp_ns = DEFAULT_SIM_CLOCK.stamp_ns(max(self._last_t, 0))
         if self._last_t % self.config.map_every_steps != 0:
             for k, explorer in enumerate(self._explorers):
                 self._write(self.topics.observed(f"r{k}", explorer.observed, stamp_ns))
                 self._write([self.topics.trajectory(f"r{k}", stamp_ns)])
-        self.recording.close()
-        return self.recording.messages
+        return self.recording.close()
 
     def _plan(self, k: int, robot: str, explorer: Explorer, stamp_ns: int) -> None:
         path = np.zeros((0, 2), np.int64) if explorer.path is None else explorer.path

@@ -2,21 +2,23 @@
 wire, as strings and bytes: data keys, liveliness tokens, QoS text and sample attachments.
 
 Taken from ros2/rmw_zenoh's docs/design.md and rmw_zenoh_cpp/src/detail
-(liveliness_utils.cpp, attachment_helpers.cpp, qos.cpp); each format is spelled out in
-docs/interop.md#the-ros-2-bridge-servicesbridgesros2. Pure functions, no Zenoh session;
-`services.ros2` declares and publishes with them.
+(liveliness_utils.cpp, attachment_helpers.cpp, qos.cpp, simplified_xxhash3.cpp); each
+format is spelled out in docs/interop.md#the-ros-2-bridge-servicesbridgesros2. Pure
+functions, no Zenoh session; `services.ros2` declares and publishes with them.
 """
 
 from __future__ import annotations
 
-import hashlib
 import struct
+
+from mapex.interop.xxh3 import xxh3_128_digest
 
 ADMIN_SPACE = "@ros2_lv"
 SLASH_REPLACEMENT = "%"
 GID_BYTES = 16
 ATTACHMENT_BYTES = 8 + 8 + 1 + GID_BYTES
-RELIABLE, TRANSIENT_LOCAL, VOLATILE, KEEP_LAST = 1, 1, 2, 1  # rmw/types.h enum values
+RELIABLE, BEST_EFFORT = 1, 2  # rmw/types.h enum values
+TRANSIENT_LOCAL, VOLATILE, KEEP_LAST = 1, 2, 1
 _DEFAULT_DEPTH = 42  # rmw_zenoh's default history depth (qos.cpp)
 
 
@@ -60,12 +62,15 @@ def publisher_token(
     return "/".join([*parts, *names, dds_type_name(ros_type), type_hash, qos])
 
 
-def qos_text(latched: bool, depth: int) -> str:
-    """The QoS field of a reliable, keep-last publisher: transient local when `latched`
-    (':1:,1:,:,:,,' for a depth of 1), else volatile ('::,10:,:,:,,' for 10)."""
+def qos_text(latched: bool, depth: int, reliable: bool = True) -> str:
+    """The QoS field of a keep-last publisher (rmw_zenoh's qos_to_keyexpr, a field equal to
+    the default left empty): transient local when `latched` (':1:,1:,:,:,,' for a depth of
+    1), else volatile ('::,10:,:,:,,' for 10); best effort when not `reliable` ('2::,1:,:,:,,'
+    for /clock's depth of 1)."""
+    reliability = "" if reliable else str(BEST_EFFORT)
     durability = str(TRANSIENT_LOCAL) if latched else ""
     depth_text = "" if depth == _DEFAULT_DEPTH else str(depth)
-    return f":{durability}:,{depth_text}:,:,:,,"
+    return f"{reliability}:{durability}:,{depth_text}:,:,:,,"
 
 
 def attachment(sequence: int, source_time_ns: int, gid: bytes) -> bytes:
@@ -84,9 +89,11 @@ def parse_attachment(data: bytes) -> tuple[int, int, bytes]:
 
 
 def publisher_gid(token: str) -> bytes:
-    """A stable 16-byte gid of a publisher, from its token (rmw_zenoh hashes the token
-    too; subscribers only use the gid to tell publishers apart)."""
-    return hashlib.blake2b(token.encode(), digest_size=GID_BYTES).digest()
+    """The 16-byte gid of a publisher, as rmw_zenoh_cpp makes it (liveliness_utils.cpp,
+    `Entity::Entity`): XXH3-128 of the whole liveliness token, its low 64 bits then its high
+    64 bits, each little-endian. `ros2 topic info -v` shows it; a subscriber tells
+    publishers apart by it."""
+    return xxh3_128_digest(token.encode())
 
 
 def _type_parts(ros_type: str) -> tuple[str, str, str]:

@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Collection
 
 from mapex.config import ExplorationConfig
+from mapex.methods.assignment import MapExAssign
 from mapex.methods.base import FrontierScorer, Method, PlanningContext
 from mapex.methods.coordinated import MapExIndependent, MapExPlusTeam, MapExTeam, NearestTeam
 from mapex.methods.ig_hector import IgHector
@@ -20,6 +21,7 @@ from mapex.methods.information_gain import (
 from mapex.methods.nearest import NearestFrontier
 from mapex.methods.path_gain import MapExPath, MapExPlus
 from mapex.methods.pathwise import MapExPlusObserved, PathwiseNbv, Pipe
+from mapex.methods.regions import MapExVoronoi
 from mapex.methods.upen import Upen
 
 METHODS: dict[str, type[Method]] = {
@@ -42,6 +44,8 @@ METHODS: dict[str, type[Method]] = {
         MapExPlusTeam,
         NearestTeam,
         MapExIndependent,
+        MapExAssign,
+        MapExVoronoi,
     )
 }
 MAIN_COMPARISON = ("nearest", "upen", "ig_hector", "mapex")

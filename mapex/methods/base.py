@@ -17,6 +17,7 @@ from mapex.frontiers import FrontierClusters
 from mapex.grid import FREE, UNKNOWN
 from mapex.methods.claims import Claim
 from mapex.methods.goals import Goal, cluster_goal
+from mapex.methods.teammates import TeamView
 from mapex.navigation import plan_path
 from mapex.prediction.base import EnsemblePrediction
 
@@ -115,6 +116,8 @@ class Method(ABC):
         self.config = config
         self.last_scores: np.ndarray | None = None  # per frontier of the last choice, if scored
         self.teammates: list[Claim] = []  # their claims, set by the team before each re-plan
+        self.team_view: TeamView | None = None  # their poses, set by the team at each step
+        self.waiting = False  # the last choice was to wait: teammates have the work for now
 
     @abstractmethod
     def select_goal(self, context: PlanningContext) -> Goal | None:
@@ -131,6 +134,11 @@ class Method(ABC):
         """What robot `robot` tells its teammates after re-planning at step `t` (None: a
         method that does not coordinate, or no goal)."""
         return None
+
+    def replans_at(self, t: int) -> bool:
+        """Whether the robot drops its goal and re-plans at step `t` whatever its state (a
+        team's re-plan in step); by default only when its goal ends."""
+        return False
 
 
 class FrontierScorer(Method):

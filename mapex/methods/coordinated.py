@@ -75,7 +75,7 @@ class Coordinated(FrontierScorer):
         cell = (int(goal.cell[0]), int(goal.cell[1]))
         visible = np.zeros(context.observed.shape, dtype=bool)
         if self.discount_claims:
-            visible = self._visible_set(context, self._claimed_viewpoints(context, goal))
+            visible = claimed_visible_set(context, goal)
         return Claim(robot, t, cell, score, visible)
 
     def _near_claimed_goals(self, frontiers: np.ndarray) -> np.ndarray:
@@ -84,32 +84,40 @@ class Coordinated(FrontierScorer):
         nearest = np.hypot(offsets[..., 0], offsets[..., 1]).min(axis=1)
         return nearest < self.config.team.goal_exclusion_cells
 
-    def _claimed_viewpoints(self, context: PlanningContext, goal: Goal) -> list[Cell]:
-        """The goal's frontier point, and with `team.claim_path_every_cells` = k > 0 every
-        k-th cell of the path there (the robot scans on its way, so teammates should not
-        count those cells either)."""
-        points: list[Cell] = [(int(goal.frontier[0]), int(goal.frontier[1]))]
-        every = self.config.team.claim_path_every_cells
-        if every > 0:
-            pose = (int(context.pose[0]), int(context.pose[1]))
-            path = plan_path(context.observed, context.cost, pose, goal.cell)
-            if path is not None:
-                points += [(int(r), int(c)) for r, c in path[every::every]]
-        return points
 
-    def _visible_set(self, context: PlanningContext, points: list[Cell]) -> np.ndarray:
-        """The unknown cells MapEx's rays from `points` reach (on M_t, or on the observed
-        map's walls without a prediction)."""
-        cfg = context.config.visibility
-        if context.prediction is not None:
-            opacity, rule, epsilon = context.prediction.mean, cfg.stop_rule, cfg.epsilon
-        else:
-            opacity = known_walls(context)
-            rule, epsilon = "threshold", 0.5
-        seen = np.zeros(context.observed.shape, dtype=bool)
-        for point in points:
-            seen |= visible_mask(opacity, point, cfg.n_rays, cfg.range_cells, rule, epsilon)
-        return seen & (context.observed == UNKNOWN)
+def claimed_visible_set(context: PlanningContext, goal: Goal) -> np.ndarray:
+    """bool (rows, cols): what a robot going to `goal` claims, the unknown cells seen from
+    its viewpoints (`claimed_viewpoints`)."""
+    return visible_unknown(context, claimed_viewpoints(context, goal))
+
+
+def claimed_viewpoints(context: PlanningContext, goal: Goal) -> list[Cell]:
+    """The goal's frontier point, and with `team.claim_path_every_cells` = k > 0 every
+    k-th cell of the path there (the robot scans on its way, so teammates should not
+    count those cells either)."""
+    points: list[Cell] = [(int(goal.frontier[0]), int(goal.frontier[1]))]
+    every = context.config.team.claim_path_every_cells
+    if every > 0:
+        pose = (int(context.pose[0]), int(context.pose[1]))
+        path = plan_path(context.observed, context.cost, pose, goal.cell)
+        if path is not None:
+            points += [(int(r), int(c)) for r, c in path[every::every]]
+    return points
+
+
+def visible_unknown(context: PlanningContext, points: list[Cell]) -> np.ndarray:
+    """The unknown cells MapEx's rays from `points` reach (on M_t, or on the observed
+    map's walls without a prediction)."""
+    cfg = context.config.visibility
+    if context.prediction is not None:
+        opacity, rule, epsilon = context.prediction.mean, cfg.stop_rule, cfg.epsilon
+    else:
+        opacity = known_walls(context)
+        rule, epsilon = "threshold", 0.5
+    seen = np.zeros(context.observed.shape, dtype=bool)
+    for point in points:
+        seen |= visible_mask(opacity, point, cfg.n_rays, cfg.range_cells, rule, epsilon)
+    return seen & (context.observed == UNKNOWN)
 
 
 class MapExTeam(Coordinated):

@@ -1,13 +1,15 @@
-"""`python -m mapex.report RESULTS_DIR`: the evaluation report of a folder of finished runs.
+"""`python -m mapex.report RESULTS_DIR [RESULTS_DIR ...]`: the evaluation report of finished runs.
 
 Reads the run folders written by mapex.results (hidden `.name` folders are runs still
-being written and are ignored) and writes, in `--out` (default RESULTS_DIR/report),
+being written and are ignored), of one folder or merged from several (the shards of one
+`services.evaluate --shard K/N` experiment: docs/deploy.md), and writes, in `--out`
+(default RESULTS_DIR/report; required with several folders),
 report.md / report.json (the AUC tables, MapEx's relative improvement, time to level,
 teams) and the figures; what each holds is in docs/algorithms.md#the-report.
 
 Modules: runs (loading run folders), tables (numbers, Markdown and JSON), figures (curves
-and snapshots), reach (time to level), teams (the team part); this one assembles the report
-and holds the command line.
+and snapshots), reach (time to level), teams (the team part), speedup (teams against one
+robot in time); this one assembles the report and holds the command line.
 """
 
 from __future__ import annotations
@@ -47,12 +49,21 @@ from mapex.report.runs import (
     RunRecord,
     Snapshots,
     Warn,
+    campaign_episodes,
+    load_folders,
     load_run,
     load_runs,
     load_snapshots,
     load_snapshots_or_warn,
     missing_runs,
     warn_stderr,
+)
+from mapex.report.speedup import (
+    SPEEDUP_FIGURE,
+    plot_speedup,
+    speedup_json,
+    speedup_markdown,
+    team_speedup_rows,
 )
 from mapex.report.tables import (
     REFERENCE_METHOD,
@@ -106,9 +117,11 @@ __all__ = [
     "auc_table",
     "budget_warning",
     "build_parser",
+    "campaign_episodes",
     "choose_snapshot_runs",
     "counts_markdown",
     "improvements_markdown",
+    "load_folders",
     "load_run",
     "load_runs",
     "load_snapshots",
@@ -183,6 +196,9 @@ def write_report(
     )
     if teams:
         text += "\n" + team_markdown(teams) + "\n"
+    speedups = team_speedup_rows(runs, config)
+    if speedups:
+        text += "\n" + speedup_markdown(speedups, config) + "\n"
     with staged_file(markdown) as partial:
         partial.write_text(text)
     data = report_json(table, improvements, counts, REFERENCE_METHOD, notes)
@@ -200,6 +216,11 @@ def write_report(
         data["teams"] = teams
         data["team_snapshot_runs"] = _write_teams(team_runs(runs), out_dir, config, warn)
         figures.append(out_dir / TEAMS_FIGURE)
+    if speedups:
+        data["speedup"] = speedup_json(speedups, config)
+        figures.append(out_dir / SPEEDUP_FIGURE)
+        with staged_file(figures[-1]) as partial:
+            plot_speedup(partial, speedups, config)
     path_json = out_dir / JSON_FILE
     with staged_file(path_json) as partial:
         partial.write_text(json.dumps(data, indent=2) + "\n")
@@ -294,12 +315,19 @@ def build_parser() -> argparse.ArgumentParser:
         "improvements, run counts, metric curves and map snapshots. Folders whose name starts "
         "with '.' are runs still being written and are ignored.",
     )
-    parser.add_argument("results_dir", type=Path, metavar="RESULTS_DIR", help="folder of runs")
+    parser.add_argument(
+        "results_dirs",
+        type=Path,
+        nargs="+",
+        metavar="RESULTS_DIR",
+        help="folder of runs; several (e.g. the shards of one services.evaluate experiment) "
+        "are merged, an episode found twice counted once if its records agree",
+    )
     parser.add_argument(
         "--out",
         type=Path,
         default=None,
-        help=f"output folder; default: RESULTS_DIR/{REPORT_DIR_NAME}",
+        help=f"output folder; default: RESULTS_DIR/{REPORT_DIR_NAME} (one RESULTS_DIR)",
     )
     parser.add_argument(
         "--snapshot-run",
@@ -311,8 +339,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--allow-missing",
         action="store_true",
-        help="report even when runs are missing or unreadable (a method absent on some "
-        "world/start/seed that others have); the report then lists them",
+        help="report even when runs are missing or unreadable (an episode that a folder's "
+        "campaign.json lists, or a method absent on some world/start/seed that others have); "
+        "the report then lists them",
     )
     return parser
 
@@ -330,16 +359,23 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def report_command(args: argparse.Namespace) -> tuple[ReportFiles, str]:
-    results_dir: Path = args.results_dir
-    if not results_dir.is_dir():
-        raise ReportError(f"results directory {results_dir} does not exist")
-    out_dir = results_dir / REPORT_DIR_NAME if args.out is None else args.out
+    results_dirs: list[Path] = list(dict.fromkeys(args.results_dirs))  # each folder once
+    for results_dir in results_dirs:
+        if not results_dir.is_dir():
+            raise ReportError(f"results directory {results_dir} does not exist")
+    if args.out is None and len(results_dirs) > 1:
+        raise ReportError("several RESULTS_DIRs: name the merged report's folder with --out")
+    out_dir = results_dirs[0] / REPORT_DIR_NAME if args.out is None else args.out
+    reports = [out_dir, *(results_dir / REPORT_DIR_NAME for results_dir in results_dirs)]
     skipped: list[str] = []
-    runs = load_runs(results_dir, exclude=(out_dir, results_dir / REPORT_DIR_NAME), skipped=skipped)
+    runs = load_folders(results_dirs, exclude=reports, skipped=skipped)
     if not runs:
-        raise ReportError(f"no finished runs in {results_dir}")
+        raise ReportError(f"no finished runs in {' '.join(map(str, results_dirs))}")
     unreadable = [f"{name} (unreadable)" for name in skipped]
-    gaps = unreadable + [name for name in missing_runs(runs) if name not in skipped]
+    have = {run.name for run in runs}
+    expected = [name for name in campaign_episodes(results_dirs) if name not in have]
+    absent = sorted({*missing_runs(runs), *expected} - set(skipped))
+    gaps = unreadable + absent
     if gaps and not args.allow_missing:
         raise ReportError(
             f"{len(gaps)} run(s) missing or unreadable (first: {gaps[0]}): complete them (rerun"

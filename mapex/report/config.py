@@ -34,6 +34,10 @@ class ReportConfig(Checked):
         ("mapex", "observed_map"),
     )
     paired_level: tuple[str, float] = share(("iou", 0.9))  # whose first step the pairs compare
+    # teams' speed-up (speedup.png): the single-robot method N robots are compared with, on
+    # the same episodes, and the coverage level whose median first step they compare
+    speedup_reference: str = "mapex"
+    speedup_level: float = ranged(0.9, 0, 1, low_open=True)
 
     @property
     def method_order(self) -> tuple[str, ...]:

@@ -14,14 +14,23 @@ import io
 import json
 import math
 import sys
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from mapex.io_limits import check_npz, read_text
-from mapex.results import CURVES_FILE, METRICS_FILE, SNAPSHOTS_FILE, folder_name, level_key
+from mapex.results import (
+    CURVES_FILE,
+    METRICS_FILE,
+    SNAPSHOTS_FILE,
+    CampaignError,
+    config_difference,
+    folder_name,
+    level_key,
+    read_campaign,
+)
 from mapex.worlds.starts import start_label
 
 METRICS = ("coverage", "iou", "tu")
@@ -134,6 +143,59 @@ def load_runs(
             if skipped is not None:
                 skipped.append(folder.name)
     return runs
+
+
+# metrics.json fields in which two runs of one episode may differ and still agree: how long
+# it took and which predictor workers answered (their ids name their processes)
+CIRCUMSTANTIAL_FIELDS = ("wall_time_s", "member_workers")
+
+
+def load_folders(
+    results_dirs: Sequence[Path],
+    warn: Warn = warn_stderr,
+    exclude: Iterable[Path] = (),
+    skipped: list[str] | None = None,
+) -> list[RunRecord]:
+    """The runs of several results folders (the shards of one experiment), merged: an
+    episode found in more than one is kept once when its records agree (`same_episode`)
+    and is a ReportError naming both places when they do not. Sorted by name."""
+    runs: dict[str, RunRecord] = {}
+    for results_dir in results_dirs:
+        for run in load_runs(results_dir, warn, exclude, skipped):
+            kept = runs.setdefault(run.name, run)
+            differing = None if kept is run else record_difference(kept.metrics, run.metrics)
+            if differing is not None:
+                raise ReportError(
+                    f"episode {run.name} is in {kept.path.parent} and in {run.path.parent} "
+                    f"with different records ({differing}): keep one of them"
+                )
+    return [runs[name] for name in sorted(runs)]
+
+
+def record_difference(first: dict, second: dict) -> str | None:
+    """The first field in which two metrics.json records of one episode differ, leaving out
+    `CIRCUMSTANTIAL_FIELDS` (e.g. `auc.iou (0.61, not 0.6)`), or None when they agree."""
+    mine, theirs = (
+        {key: value for key, value in record.items() if key not in CIRCUMSTANTIAL_FIELDS}
+        for record in (first, second)
+    )
+    if mine == theirs:
+        return None
+    return config_difference(theirs, mine) or "the fields they hold"
+
+
+def campaign_episodes(results_dirs: Sequence[Path]) -> list[str]:
+    """Every episode the campaign.json of any of the folders lists (services.evaluate writes
+    one; all shards of an experiment list all its episodes), in their order; ReportError
+    (one line) for an unreadable one."""
+    names: dict[str, None] = {}
+    for results_dir in results_dirs:
+        try:
+            campaign = read_campaign(results_dir)
+        except CampaignError as error:
+            raise ReportError(str(error)) from None
+        names.update(dict.fromkeys(campaign["episodes"] if campaign else ()))
+    return list(names)
 
 
 def missing_runs(runs: Iterable[RunRecord]) -> list[str]:

@@ -5,7 +5,8 @@ table of overlap (share of the seen cells that more than one robot saw) and path
 robot, and teams.png: for one world and start, each team method's last snapshot of the
 merged observed map with every robot's trajectory in a colour of its own
 (docs/algorithms.md#teams). Team coverage against time for 1, 2 and 4 robots is curves.png:
-teams are labelled by size (`mapex_team x2`), so they are curves of their own.
+teams are labelled by size (`mapex_team x2`), so they are curves of their own; how much
+sooner they reach a coverage level than one robot is `mapex.report.speedup`.
 """
 
 from __future__ import annotations
@@ -40,11 +41,15 @@ def team_summary(runs: Sequence[RunRecord], order: Sequence[str]) -> dict[str, d
         mine = [r for r in runs if r.method == method]
         overlap = mean_se([float(r.metrics["team"].get("overlap", np.nan)) for r in mine])
         lengths = [v for r in mine for v in r.metrics["team"].get("path_length_m", [])]
+        totals = [r.metrics["path_length_m"] for r in mine if "path_length_m" in r.metrics]
+        idle = [v for r in mine for v in r.metrics.get("idle_steps") or []]
         lost = {r.name: r.metrics["team"].get("lost_at") for r in mine}
         summary[method] = {
             "runs": len(mine),
             "overlap": {"mean": overlap.mean, "se": overlap.se},
             "path_length_m_per_robot": float(np.mean(lengths)) if lengths else None,
+            "path_length_m_team": float(np.mean(totals)) if totals else None,
+            "idle_steps_per_robot": float(np.mean(idle)) if idle else None,
             "lost": {name: at for name, at in lost.items() if at},
         }
     return summary
@@ -56,20 +61,28 @@ def team_markdown(summary: dict[str, dict]) -> str:
         "## Teams",
         "",
         "Overlap: share of the cells seen by the team that more than one robot saw "
-        "(lower: the robots spread out more). Path length: mean over robots and runs.",
+        "(lower: the robots spread out more). Path length: mean over robots and runs; team "
+        "path: every robot's summed, mean over runs. Idle steps: the steps a robot stood "
+        "still while the run went on, mean over robots and runs.",
         "",
-        "| method | runs | overlap | path length per robot (m) | runs with a lost robot |",
-        "|---|---|---|---|---|",
+        "| method | runs | overlap | path length per robot (m) | runs with a lost robot "
+        "| team path (m) | idle steps per robot |",
+        "|---|---|---|---|---|---|---|",
     ]
     for method, row in summary.items():
         overlap = row["overlap"]
         se = "" if np.isnan(overlap["se"]) else f" ± {overlap['se']:.3f}"
-        length = row["path_length_m_per_robot"]
+        length, team = row["path_length_m_per_robot"], row.get("path_length_m_team")
+        idle = row.get("idle_steps_per_robot")
         lines.append(
-            f"| {method} | {row['runs']} | {overlap['mean']:.3f}{se} | "
-            f"{'-' if length is None else f'{length:.0f}'} | {len(row['lost'])} |"
+            f"| {method} | {row['runs']} | {overlap['mean']:.3f}{se} | {_whole(length)} | "
+            f"{len(row['lost'])} | {_whole(team)} | {_whole(idle)} |"
         )
     return "\n".join(lines)
+
+
+def _whole(value: float | None) -> str:
+    return "-" if value is None else f"{value:.0f}"
 
 
 def load_trajectories(run: RunRecord, until_step: int) -> list[np.ndarray] | None:

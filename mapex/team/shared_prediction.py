@@ -1,4 +1,5 @@
-"""One ensemble prediction per epoch for the whole team (docs/algorithms.md#teams).
+"""One ensemble prediction per epoch for the whole team (docs/algorithms.md#teams), and the
+explorer of a robot of a team.
 
 N robots re-planning at their own steps would ask for about N times the predictions of one
 robot. With `team.prediction_epoch_steps` = k the team predicts on its map as it stood at
@@ -49,7 +50,9 @@ class EpochPrediction:
 
 
 class TeammateExplorer(Explorer):
-    """An explorer whose re-plans use the team's epoch prediction."""
+    """An explorer whose re-plans use the team's epoch prediction; it also re-plans when
+    its method says the team re-plans in step (`Method.replans_at`), and when its method
+    chose to wait it stands still for `team.idle_replan_steps` before looking again."""
 
     def __init__(
         self,
@@ -61,6 +64,18 @@ class TeammateExplorer(Explorer):
     ) -> None:
         super().__init__(shape, method, None if shared is None else shared.predictor, config, seed)
         self.shared = shared
+        self.waiting_until: int | None = None  # the step at which a waiting robot looks again
+
+    def next_motion(self, t: int) -> np.ndarray | None:
+        if self.method.replans_at(t):
+            self.goal = self.path = None
+        elif self.waiting_until is not None and t < self.waiting_until:
+            return None
+        self.method.waiting = False
+        motion = super().next_motion(t)
+        waits = motion is None and self.method.waiting
+        self.waiting_until = t + self.config.team.idle_replan_steps if waits else None
+        return motion
 
     def predict(self) -> EnsemblePrediction:
         if self.shared is None:

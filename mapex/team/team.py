@@ -1,9 +1,9 @@
 """A team's state in one process: the shared map, the claim board and the explorers of
 the robots decided here (all of them, or one in a robot's planner process).
 
-At each step t every robot sees its teammates' claims as they stood after step t - 1 and
-chooses its motion (docs/algorithms.md#teams); the claims made at t are settled together.
-A team of one predicts at every re-plan, exactly as a robot alone.
+At each step t every robot sees its teammates' claims and poses as they stood after step
+t - 1 and chooses its motion (docs/algorithms.md#teams); the claims made at t are settled
+together. A team of one predicts at every re-plan, exactly as a robot alone.
 """
 
 from __future__ import annotations
@@ -15,9 +15,10 @@ import numpy as np
 
 from mapex.config import ExplorationConfig
 from mapex.explorer import Explorer
-from mapex.grid import new_observed_map
+from mapex.grid import Cell, new_observed_map
 from mapex.methods import make_method
 from mapex.methods.claims import Claim, ClaimBoard
+from mapex.methods.teammates import TeamView
 from mapex.prediction.base import Predictor
 from mapex.sensor import Scan, integrate_scan
 from mapex.team.shared_prediction import EpochPrediction, TeammateExplorer
@@ -74,15 +75,24 @@ class Team:
         for robot in robots:
             self.lost_at.setdefault(robot, t)
 
+    def poses(self) -> tuple[Cell | None, ...]:
+        """Every robot's cell after its last scan (None: a robot reported lost)."""
+        return tuple(
+            None if robot in self.lost_at or not path else (int(path[-1][0]), int(path[-1][1]))
+            for robot, path in enumerate(self.trajectories)
+        )
+
     def decide(self, t: int) -> list[Decision]:
-        """The decisions of the robots run here for step t, each seeing the claims as they
-        stood after step t - 1."""
+        """The decisions of the robots run here for step t, each seeing the claims and poses
+        as they stood after step t - 1."""
         if self.shared is not None:
             self.shared.begin_step(t, self.observed)
         decisions = []
+        poses, computed = self.poses(), {}  # what the robots decided here share at this step
         for robot, explorer in self.explorers.items():
             method = explorer.method
             method.teammates = self.board.teammates_of(robot)
+            method.team_view = TeamView(robot, t, poses, computed)
             replans = explorer.stats.replans
             motion = explorer.next_motion(t)
             claimed = explorer.stats.replans != replans and method.coordinates

@@ -2,12 +2,13 @@
 
 The ROS 2 bridge, the MCAP recorder and the browser view all need each robot's maps, pose,
 path, goal, frontiers, metrics and status as they are published, plus each run's world
-info, for runs that start later too. `RunFollower` subscribes with wildcards
-(`mapex/@v1/<run or *>/*/<topic>`), asks once with a `get` for what was published before it
-joined, decodes on Zenoh's threads and hands `Update`s to one consumer thread, so a sink
-never needs a lock. Compare steps per topic, never across topics (docs/protocol.md). A
-payload that does not decode, or a key that is not a MapEx v1 key, is dropped with one log
-line.
+info, for runs that start later too; the ROS translation also each robot's scan (asked for
+with `topics=`: a whole scan per robot per step, which the other sinks do without).
+`RunFollower` subscribes with wildcards (`mapex/@v1/<run or *>/*/<topic>`), asks once with
+a `get` for what was published before it joined, decodes on Zenoh's threads and hands
+`Update`s to one consumer thread, so a sink never needs a lock. Compare steps per topic,
+never across topics (docs/protocol.md). A payload that does not decode, or a key that is
+not a MapEx v1 key, is dropped with one log line.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from services.messages import (
     MetricsMessage,
     PathMessage,
     PoseMessage,
+    ScanReply,
     StatusMessage,
     WorldInfo,
     decode_message,
@@ -46,7 +48,10 @@ FOLLOWED_TOPICS: dict[str, type[Message]] = {
     "path": PathMessage,
     "status": StatusMessage,
     "metrics": MetricsMessage,
+    "scan": ScanReply,
 }
+OPT_IN_TOPICS = ("scan",)  # followed only when a sink asks for them (topics=)
+DEFAULT_TOPICS: tuple[str, ...] = tuple(t for t in FOLLOWED_TOPICS if t not in OPT_IN_TOPICS)
 MAP_KIND_OF_TOPIC = {
     "observed_map": "observed",
     "prediction/mean": "mean",
@@ -90,7 +95,7 @@ class RunFollower:
         session: zenoh.Session,
         sink: Sink,
         run: str | None = None,
-        topics: tuple[str, ...] = tuple(FOLLOWED_TOPICS),
+        topics: tuple[str, ...] = DEFAULT_TOPICS,
         get_timeout_s: float = 2.0,
     ) -> None:
         unknown = set(topics) - set(FOLLOWED_TOPICS)

@@ -1,6 +1,8 @@
 """The outside-tool flags of `services.up` and `services.evaluate`, and starting those tools.
 
-* `--record FILE.mcap`: an MCAP recording of every run, in-process (`services.record`);
+* `--record FILE.mcap`: every run as a rosbag2 bag in one MCAP file, in-process
+  (`services.record`); `--record-foxglove FILE.mcap`: their Foxglove channels, a file of
+  their own;
 * `--ros2` (with `--ros-connect ENDPOINT`, `--ros-domain N`): the ROS 2 bridge as a child
   process (`services.ros2`), supervised like the others;
 * `--web [PORT]`: the live browser view, in-process (`services.web`);
@@ -21,9 +23,10 @@ from pathlib import Path
 import zenoh
 
 from mapex.config import ConfigError
-from mapex.interop.mcap_file import record_path_problem
+from mapex.interop.mcap_file import recording_flags_problem
 from services.bridges.foxglove_live import FOXGLOVE_DEFAULT_PORT, FoxgloveLive
 from services.bridges.record import RunRecorder
+from services.bridges.ros2 import ros_router_problem
 from services.bridges.web import WebView
 from services.config import DEFAULT_WEB, WebConfig
 from services.supervisor import ProcessSpec
@@ -34,11 +37,16 @@ RECORD_FINISH_WAIT_S = 5.0  # after the planners exit: time for their last frame
 
 
 def add_outside_tool_arguments(parser: argparse.ArgumentParser) -> None:
-    """--record, --ros2, --ros-connect, --ros-domain, --web, --foxglove."""
+    """--record, --record-foxglove, --ros2, --ros-connect, --ros-domain, --web, --foxglove."""
     group = parser.add_argument_group("outside tools (docs/interop.md)")
     group.add_argument(
         "--record", type=Path, default=None, metavar="FILE.mcap",
-        help="record every run as a rosbag2-compatible MCAP (ROS 2 and Foxglove topics)",
+        help="record every run as a rosbag2 bag in one MCAP file (ROS 2 topics, CDR: "
+        "`ros2 bag play`, rosbags, Foxglove)",
+    )  # fmt: skip
+    group.add_argument(
+        "--record-foxglove", type=Path, default=None, metavar="FILE.mcap",
+        help="record every run's Foxglove channels (protobuf) as an MCAP file of their own",
     )  # fmt: skip
     group.add_argument(
         "--ros2", action="store_true",
@@ -63,16 +71,22 @@ def add_outside_tool_arguments(parser: argparse.ArgumentParser) -> None:
 
 def check_outside_tool_arguments(args: argparse.Namespace) -> None:
     """ConfigError (one line) for a bad flag or a missing extra, before anything starts."""
-    if args.record is not None and (problem := record_path_problem(args.record)):
-        raise ConfigError(f"--record {problem}")
+    recordings = {"--record": args.record, "--record-foxglove": args.record_foxglove}
+    if (problem := recording_flags_problem(recordings)) is not None:
+        raise ConfigError(problem)
     if (args.ros_connect or args.ros_domain is not None) and not args.ros2:
         raise ConfigError("--ros-connect and --ros-domain go with --ros2")
     if args.ros_domain is not None and not 0 <= args.ros_domain <= 232:
         raise ConfigError(f"--ros-domain {args.ros_domain} is not a ROS 2 domain id (0-232)")
-    if args.record is not None or args.ros2:
-        _require("rosbags", "--record and --ros2 need the ros extra: pip install -e '.[ros]'")
+    if args.record is not None or args.record_foxglove is not None or args.ros2:
+        _require(
+            "rosbags", "--record, --record-foxglove and --ros2 need the ros extra: "
+            "pip install -e '.[ros]'",
+        )  # fmt: skip
     if args.foxglove is not None:
         _require("foxglove", "--foxglove needs the foxglove extra: pip install -e '.[foxglove]'")
+    if args.ros2 and args.ros_connect and (problem := ros_router_problem(args.ros_connect)):
+        raise ConfigError(problem)  # else the bridge would publish into nothing
 
 
 def bridge_spec(args: argparse.Namespace, zenoh_flags: Sequence[str]) -> list[ProcessSpec]:
@@ -91,7 +105,10 @@ class OutsideTools:
     def __init__(self, session: zenoh.Session, args: argparse.Namespace) -> None:
         self.recorder = self.foxglove = self.web = None
         try:
-            self.recorder = RunRecorder(session, args.record) if args.record else None
+            if args.record is not None or args.record_foxglove is not None:
+                self.recorder = RunRecorder(
+                    session, args.record, foxglove_path=args.record_foxglove
+                )
             if args.foxglove is not None:
                 self.foxglove = FoxgloveLive(session, port=args.foxglove)
             if args.web is not None:

@@ -1,11 +1,13 @@
-"""`python -m services.record --out run.mcap`: record runs on the Zenoh network as an MCAP file.
+"""`python -m services.record --out run.mcap`: record runs on the Zenoh network as MCAP files.
 
-    python -m services.record --out FILE.mcap [--run RUN] [--until-finished]
-        [--timeout-s N] [--mode ...] [--connect ...]
+    python -m services.record [--out FILE.mcap] [--foxglove-out FILE.mcap] [--run RUN]
+        [--until-finished] [--timeout-s N] [--mode ...] [--connect ...]
 
 Follows every robot of one run (`--run`) or of every run and writes what it hears as the
-topics of `mapex.interop.topics` into a rosbag2-compatible MCAP (`mapex.interop.mcap_file`).
-Needs the `ros` extra. What the file holds and the exits: docs/interop.md#recording-mcap.
+topics of `mapex.interop.topics`: the ROS 2 topics as a rosbag2 bag in one MCAP file
+(`--out`), the Foxglove channels in a file of their own (`--foxglove-out`); one of them or
+both (`mapex.interop.mcap_file`). Needs the `ros` extra. What the files hold and the exits:
+docs/interop.md#recording-mcap.
 """
 
 from __future__ import annotations
@@ -21,10 +23,10 @@ from pathlib import Path
 import zenoh
 
 from mapex.exit_codes import EXIT_USAGE
-from mapex.interop.mcap_file import McapRecording, record_path_problem
+from mapex.interop.mcap_file import Recordings, recording_flags_problem
 from mapex.interop.ros_messages import MissingExtraError
 from services.bridges.follow import FINAL_STATES, RunFollower, Update
-from services.bridges.ros_translate import RunTranslator
+from services.bridges.ros_translate import TRANSLATED_TOPICS, RunTranslator
 from services.config import Ros2Config
 from services.keys import run_id_problem
 from services.serving import configure_logging, positive_number, stop_on_signals
@@ -41,18 +43,21 @@ log = logging.getLogger("services.record")
 
 
 class RunRecorder:
-    """Records the followed runs into `path` until `close`; knows which runs finished."""
+    """Records the followed runs until `close`, the bag into `path` and the Foxglove channels
+    into `foxglove_path` (either may be None); knows which runs finished."""
 
     def __init__(
-        self, session: zenoh.Session, path: Path, run: str | None = None,
-        config: Ros2Config | None = None,
+        self, session: zenoh.Session, path: Path | None, run: str | None = None,
+        config: Ros2Config | None = None, foxglove_path: Path | None = None,
     ) -> None:  # fmt: skip
         self.config = config or Ros2Config()
-        self.recording = McapRecording(path)
-        self._translate = RunTranslator(self.recording.write, self.config, with_foxglove=True)
+        self.recordings = Recordings(path, foxglove_path)
+        self._translate = RunTranslator(
+            self.recordings.write, self.config, with_foxglove=self.recordings.with_foxglove
+        )
         self._states: dict[str, dict[str, str]] = {}  # run -> robot -> latest status state
         self._changed = threading.Condition()
-        self.follower = RunFollower(session, self._on_update, run)
+        self.follower = RunFollower(session, self._on_update, run, TRANSLATED_TOPICS)
 
     def _on_update(self, update: Update) -> None:
         self._translate(update)
@@ -76,12 +81,12 @@ class RunRecorder:
             time.sleep(self.config.settle_s)
         return done
 
-    def close(self) -> int:
-        """Stop following, write what is queued, finish the file; the messages written."""
+    def close(self) -> str:
+        """Stop following, write what is queued, finish the files; what was written."""
         self.follower.close()
-        self.recording.close()
-        log.info("wrote %s (%d messages)", self.recording.path, self.recording.messages)
-        return self.recording.messages
+        written = self.recordings.close()
+        log.info("wrote %s", written)
+        return written
 
     def _finished(self, runs: Collection[str] | None) -> bool:
         wanted = list(self._states) if runs is None else list(runs)
@@ -94,11 +99,12 @@ class RunRecorder:
 
 def main(
     config: zenoh.Config,
-    out: Path,
+    out: Path | None,
     run: str | None = None,
     until_finished: bool = False,
     timeout_s: float | None = None,
     stop: threading.Event | None = None,
+    foxglove_out: Path | None = None,
 ) -> bool:
     """Record until `stop`, the runs' end (`until_finished`) or `timeout_s`; whether the
     followed runs finished."""
@@ -106,7 +112,7 @@ def main(
     deadline_s = None if timeout_s is None else time.monotonic() + timeout_s
     session = open_session(config)
     try:
-        recorder = RunRecorder(session, out, run)
+        recorder = RunRecorder(session, out, run, foxglove_path=foxglove_out)
         try:
             while not stop.is_set():
                 if until_finished and recorder.finished([run] if run else None):
@@ -129,7 +135,14 @@ def build_parser() -> argparse.ArgumentParser:
         description=__doc__.split("\n\n")[2],
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--out", type=Path, required=True, help="the MCAP file to write")
+    parser.add_argument(
+        "--out", type=Path, default=None, metavar="FILE.mcap",
+        help="the rosbag2 bag to write, one MCAP file (ROS 2 topics, CDR)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--foxglove-out", type=Path, default=None, metavar="FILE.mcap",
+        help="the MCAP file of the Foxglove channels (protobuf) to write",
+    )  # fmt: skip
     parser.add_argument("--run", default=None, help="run id to record (default: every run)")
     parser.add_argument(
         "--until-finished", action="store_true",
@@ -148,14 +161,17 @@ def run_cli(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.run is not None and (problem := run_id_problem(args.run)) is not None:
         parser.error(problem)
-    if (problem := record_path_problem(args.out)) is not None:
-        parser.error(f"--out {problem}")
+    if args.out is None and args.foxglove_out is None:
+        parser.error("give --out FILE.mcap, --foxglove-out FILE.mcap or both")
+    paths = {"--out": args.out, "--foxglove-out": args.foxglove_out}
+    if (problem := recording_flags_problem(paths)) is not None:
+        parser.error(problem)
     configure_logging(f"record[{args.run or '*'}]")
     stop = stop_on_signals()
     try:
         done = main(zenoh_config_from_args(args), args.out, args.run, args.until_finished,
-                    args.timeout_s, stop)  # fmt: skip
-    except (ZenohConfigError, MissingExtraError) as error:
+                    args.timeout_s, stop, args.foxglove_out)  # fmt: skip
+    except (ZenohConfigError, MissingExtraError, OSError) as error:
         log.error("%s", error)
         return EXIT_USAGE
     if args.until_finished and not done and not stop.is_set():

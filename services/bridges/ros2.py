@@ -1,12 +1,14 @@
-"""`python -m services.ros2`: a run's maps, poses and paths as ROS 2 topics over rmw_zenoh.
+"""`python -m services.ros2`: a run's maps, poses, scans, paths and transforms as ROS 2
+topics over rmw_zenoh, in simulated time.
 
     python -m services.ros2 [--run RUN] [--domain N] [--ros-connect ENDPOINT]
         [--bridge-keys] [--mode ...] [--connect ...]
 
 Follows every robot of one run (`--run`), or of every run, and republishes the topics of
 `mapex.interop.topics` as rmw_zenoh does, so `ros2 topic list/echo` and RViz2 see them;
-`--ros-connect` publishes through a session connected to the ROS 2 router instead. Needs
-the `ros` extra. Topics, wire format, flags and exits:
+`--ros-connect` publishes through a session connected to the ROS 2 router instead (nothing
+answering there is a one-line error, exit 2). Needs the `ros` extra. Topics, wire format,
+flags and exits:
 docs/interop.md#the-ros-2-bridge-servicesbridgesros2.
 """
 
@@ -28,11 +30,12 @@ from mapex.interop import rmw_zenoh as rmw
 from mapex.interop.ros_messages import MissingExtraError, serialize, type_hash
 from mapex.interop.topics import Outgoing
 from services.bridges.follow import RunFollower
-from services.bridges.ros_translate import RunTranslator
+from services.bridges.ros_translate import TRANSLATED_TOPICS, RunTranslator
 from services.codec import DEFAULT_SERVICES
 from services.config import Ros2Config
 from services.keys import run_id_problem
 from services.serving import configure_logging, stop_on_signals
+from services.supervisor import endpoint_silence
 from services.zenoh_config import (
     ZenohConfigError,
     add_zenoh_arguments,
@@ -104,14 +107,14 @@ class RosNode:
     def _declare(self, outgoing: Outgoing) -> _Publisher:
         cfg = self.config
         digest = type_hash(outgoing.ros_type)
-        depth = cfg.latched_depth if outgoing.latched else cfg.volatile_depth
+        depth = outgoing.depth or (cfg.latched_depth if outgoing.latched else cfg.volatile_depth)
         entity_id, self._next_entity_id = self._next_entity_id, self._next_entity_id + 1
         token = rmw.publisher_token(
             cfg.domain_id, self.zid, self.node_id, entity_id, cfg.node_name, outgoing.topic,
-            outgoing.ros_type, digest, rmw.qos_text(outgoing.latched, depth),
+            outgoing.ros_type, digest, rmw.qos_text(outgoing.latched, depth, outgoing.reliable),
         )  # fmt: skip
         key = rmw.data_key(cfg.domain_id, outgoing.topic, outgoing.ros_type, digest)
-        publisher = self._data_publisher(key, outgoing.latched, depth)
+        publisher = self._data_publisher(key, outgoing.latched, depth, outgoing.reliable)
         bridge = (
             self.session.declare_publisher(outgoing.topic.lstrip("/")) if self.bridge_keys else None
         )
@@ -123,22 +126,43 @@ class RosNode:
         log.info("publishing %s (%s)", outgoing.topic, outgoing.ros_type)
         return entry
 
-    def _data_publisher(self, key: str, latched: bool, depth: int):
+    def _data_publisher(self, key: str, latched: bool, depth: int, reliable: bool = True):
         """rmw_zenoh's publisher: latched topics keep their last `depth` samples for late
-        transient-local subscribers (zenoh-ext advanced publisher, as rmw_zenoh declares)."""
+        transient-local subscribers (zenoh-ext advanced publisher, as rmw_zenoh declares,
+        with sample-miss heartbeats when reliable); best-effort ones (/clock) put best
+        effort."""
+        reliability = zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT
         if not latched:
             return self.session.declare_publisher(
-                key, reliability=zenoh.Reliability.RELIABLE,
-                congestion_control=zenoh.CongestionControl.DROP,
-            )  # fmt: skip
+                key, reliability=reliability, congestion_control=zenoh.CongestionControl.DROP
+            )
         from zenoh.ext import CacheConfig, MissDetectionConfig, declare_advanced_publisher
 
+        heartbeat = MissDetectionConfig(sporadic_heartbeat=self.config.heartbeat_s)
         return declare_advanced_publisher(
             self.session, key, cache=CacheConfig(max_samples=depth),
-            sample_miss_detection=MissDetectionConfig(sporadic_heartbeat=self.config.heartbeat_s),
-            publisher_detection=True, reliability=zenoh.Reliability.RELIABLE,
+            sample_miss_detection=heartbeat if reliable else None,
+            publisher_detection=True, reliability=reliability,
             congestion_control=zenoh.CongestionControl.DROP,
         )  # fmt: skip
+
+
+def ros_router_problem(
+    endpoint: str, timeout_s: float = DEFAULT_SERVICES.hub_probe_timeout_s
+) -> str | None:
+    """Why `--ros-connect ENDPOINT` cannot be used, in one line (nothing accepts a TCP
+    connection there within `timeout_s`, or the endpoint is malformed), or None. Without
+    this the bridge would open a session anyway and publish into nothing."""
+    try:
+        silence = endpoint_silence(endpoint, timeout_s)
+    except ValueError as error:
+        return f"bad --ros-connect endpoint: {error}"
+    if silence is None:
+        return None
+    return (
+        f"nothing answers at --ros-connect {endpoint} ({silence}): start the ROS 2 router "
+        "there first (ros2 run rmw_zenoh_cpp rmw_zenohd)"
+    )
 
 
 def ros_session_config(endpoint: str) -> zenoh.Config:
@@ -164,7 +188,8 @@ def main(
     session = open_session(config)
     ros_session = open_session(ros_session_config(ros_connect)) if ros_connect else session
     node = RosNode(ros_session, ros2, bridge_keys)
-    follower = RunFollower(session, RunTranslator(node.publish, ros2, node.forget), run)
+    translate = RunTranslator(node.publish, ros2, node.forget)
+    follower = RunFollower(session, translate, run, TRANSLATED_TOPICS)
     log.info("bridging %s to ROS 2 domain %d as node %s",
              f"run {run}" if run else "every run", ros2.domain_id, ros2.node_name)  # fmt: skip
     try:
@@ -210,6 +235,9 @@ def run_cli(argv: list[str] | None = None) -> int:
         parser.error(problem)
     if not 0 <= args.domain <= 232:
         parser.error(f"--domain {args.domain} is not a ROS 2 domain id (0-232)")
+    if args.ros_connect and (problem := ros_router_problem(args.ros_connect)) is not None:
+        print(f"{parser.prog}: error: {problem}", file=sys.stderr)
+        return EXIT_USAGE
     configure_logging(f"ros2[{args.run or '*'}]")
     stop = stop_on_signals()
     try:

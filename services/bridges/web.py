@@ -38,6 +38,7 @@ from services.bridges.web_state import (
     MapThrottle,
     ViewState,
     encode_update,
+    final_event,
     sse_frame,
 )
 from services.config import DEFAULT_WEB, WebConfig
@@ -136,6 +137,7 @@ class WebView:
         self.events_sent = 0
         self._clients: set[EventClient] = set()
         self._lock = threading.Lock()
+        self._streams_changed = threading.Condition(self._lock)
         self._closing = threading.Event()
         self._follower: RunFollower | None = None
         self._threads: list[threading.Thread] = []
@@ -173,16 +175,18 @@ class WebView:
         return self
 
     def close(self) -> None:
-        """Stop following, end every stream, stop serving and free the port."""
+        """Stop following, end every stream once what is queued for it is sent (at most
+        `close_timeout_s`), stop serving and free the port."""
         self._closing.set()
         if self._follower is not None:
             self._follower.close()
         if self._threads:
             self.server.shutdown()
         with self._lock:
-            clients, self._clients = list(self._clients), set()
-        for client in clients:
-            client.close()
+            for client in self._clients:
+                client.close(drain=True)
+            self._streams_changed.wait_for(lambda: not self._clients, self.config.close_timeout_s)
+            self._clients.clear()
         for thread in self._threads:
             thread.join(self.config.close_timeout_s)
         self.server.server_close()
@@ -214,6 +218,7 @@ class WebView:
         client.close()
         with self._lock:
             self._clients.discard(client)
+            self._streams_changed.notify_all()
 
     def snapshot_json(self) -> bytes:
         """The `/state` document as JSON bytes."""
@@ -223,14 +228,19 @@ class WebView:
 
     def on_update(self, update: Update) -> None:
         """Take one update in (the follower's sink, on its one thread; callable directly to
-        feed updates from elsewhere): remember it, then send it now or hold a map back."""
+        feed updates from elsewhere): remember it, then send it now or hold a map back; then
+        a `final` event when it changed how its run ended."""
+        run = update.run
         with self._lock:
+            final_before = self.state.final(run)
             if not self.state.apply(update):
                 return
             if update.topic in MAP_KIND_OF_TOPIC:
                 update = self.throttle.offer(update, self.clock())
             if update is not None:
                 self._broadcast(update)
+            if (final := self.state.final(run)) != final_before:
+                self._send(sse_frame("final", final_event(run, final)))
 
     def _flush(self) -> None:
         """Send held-back maps as their turn comes, until `close`."""
@@ -240,11 +250,14 @@ class WebView:
                     self._broadcast(update)
 
     def _broadcast(self, update: Update) -> None:
-        """Queue `update` for every client (the lock is held); drop clients too far behind."""
-        frame = sse_frame("update", encode_update(update))
+        """Queue `update`'s event for every client (the lock is held)."""
+        self._send(sse_frame("update", encode_update(update)))
+
+    def _send(self, frame: bytes) -> None:
+        """Queue `frame` for every client (the lock is held); drop clients too far behind."""
         self.events_sent += 1
         for client in list(self._clients):
-            if not client.push(frame):
+            if not client.push(frame) and not self._closing.is_set():  # closing: it drains
                 self._clients.discard(client)
                 log.info(
                     "dropped a stream %d events behind (its browser reconnects)",

@@ -4,8 +4,8 @@ and the server-sent events made of it, with no HTTP and no Zenoh in it.
 `ViewState` keeps, per run and robot, the latest message of each topic, the metric history
 and the trajectory, for the snapshot a page starts from; `encode_update` turns one update
 into the JSON of its event (maps as base64 of their uint8 cells); `MapThrottle` thins map
-events per robot and kind, always letting the newest through; `EventClient` is one
-browser's queue of frames.
+events per robot and kind, always letting the newest through; `RunRecord.final` says how a
+run ended once every robot of it said so; `EventClient` is one browser's queue of frames.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from services.bridges.follow import Update
+from services.bridges.follow import FINAL_STATES, Update
 from services.config import DEFAULT_WEB, WebConfig
 from services.messages import (
     FrontiersMessage,
@@ -37,6 +37,7 @@ from services.messages import (
 )
 
 KEEPALIVE_FRAME = b": keep-alive\n\n"
+FINISHED, FAILED = FINAL_STATES
 
 log = logging.getLogger("services.web")
 
@@ -97,6 +98,12 @@ def sse_frame(event: str, data: dict[str, Any]) -> bytes:
     """One Server-Sent Events frame: `event: NAME`, one `data:` line of compact JSON."""
     text = json.dumps(data, separators=(",", ":"), allow_nan=False)
     return f"event: {event}\ndata: {text}\n\n".encode()
+
+
+def final_event(run: str, final: dict[str, Any] | None) -> dict[str, Any]:
+    """The data of a `final` event: how `run` ended (`RunRecord.final`), null again when a
+    robot that has not ended joined it."""
+    return {"run": run, "final": final}
 
 
 def _step(update: Update) -> int | None:
@@ -173,6 +180,22 @@ class RunRecord:
     world: Update | None = None
     robots: dict[str, RobotRecord] = field(default_factory=dict)
 
+    @property
+    def final(self) -> dict[str, Any] | None:
+        """How the run ended, once every robot known of it said finished or failed:
+        `{"state": "failed" if any failed else "finished", "t": the latest of their steps}`;
+        None before (a robot without a final status, or no robot yet)."""
+        statuses = [robot.latest.get("status") for robot in self.robots.values()]
+        if not statuses or any(
+            status is None or status.message.state not in FINAL_STATES for status in statuses
+        ):
+            return None
+        failed = any(status.message.state == FAILED for status in statuses)
+        return {
+            "state": FAILED if failed else FINISHED,
+            "t": max(status.message.t for status in statuses),
+        }
+
 
 class ViewState:
     """Everything the view knows, for `/state` and a new stream's snapshot. Not thread-safe:
@@ -196,6 +219,11 @@ class ViewState:
         robot.latest[update.topic] = update
         self._accumulate(robot, update.message)
         return True
+
+    def final(self, run: str) -> dict[str, Any] | None:
+        """How `run` ended (`RunRecord.final`); None while it goes on or when it is unknown."""
+        record = self.runs.get(run)
+        return None if record is None else record.final
 
     def snapshot(self) -> dict[str, Any]:
         """The `/state` document (docs/protocol.md#the-browser-view-http-routes-and-sse-events)."""
@@ -235,6 +263,7 @@ class ViewState:
     def _run_snapshot(run: RunRecord) -> dict[str, Any]:
         return {
             "world": None if run.world is None else encode_update(run.world),
+            "final": run.final,
             "robots": {
                 name: {
                     "t": robot.t,
@@ -252,7 +281,8 @@ class ViewState:
 
 class EventClient:
     """The frames waiting for one `/events` stream, filled by `WebView`, drained by its
-    handler thread. Closed when it overflows (a stalled browser) or when the view closes."""
+    handler thread. Closed when it overflows (a stalled browser: what is queued is dropped)
+    or when the view closes (what is queued is still sent, e.g. a run's final status)."""
 
     def __init__(self, max_queued_events: int) -> None:
         self.max_queued_events = max_queued_events
@@ -265,6 +295,7 @@ class EventClient:
         with self._changed:
             if not self.closed and len(self._frames) >= self.max_queued_events:
                 self.closed = True
+                self._frames.clear()
             if self.closed:
                 self._changed.notify_all()
                 return False
@@ -272,16 +303,20 @@ class EventClient:
             self._changed.notify_all()
             return True
 
-    def close(self) -> None:
-        """End the stream: `next_frame` returns None from now on."""
+    def close(self, drain: bool = False) -> None:
+        """End the stream: no frame is taken from now on; `next_frame` returns None at once,
+        or, with `drain`, once the frames already queued are taken."""
         with self._changed:
             self.closed = True
+            if not drain:
+                self._frames.clear()
             self._changed.notify_all()
 
     def next_frame(self, timeout_s: float) -> bytes | None:
-        """The next frame; KEEPALIVE_FRAME after `timeout_s` without one; None once closed."""
+        """The next frame; KEEPALIVE_FRAME after `timeout_s` without one; None once closed
+        and drained."""
         with self._changed:
             self._changed.wait_for(lambda: self._frames or self.closed, timeout_s)
-            if self.closed:
-                return None
-            return self._frames.popleft() if self._frames else KEEPALIVE_FRAME
+            if self._frames:
+                return self._frames.popleft()
+            return None if self.closed else KEEPALIVE_FRAME

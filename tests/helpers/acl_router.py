@@ -14,6 +14,7 @@ import json
 import shutil
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 import pytest
@@ -35,6 +36,8 @@ PASSWORDS = {role: f"{role}-s3cret" for role in ROLES}  # the user name is the r
 AUTHS = ("password", "mtls")
 ROLE_CN_PREFIX = "mapex-"  # the certificate CN of role r is mapex-r
 TLS_TRANSPORT = "transport: {"  # where the TLS link block goes in ACL_FILE (once)
+LOOPBACK = "127.0.0.1"
+LOOPBACK_NAMES = "DNS:localhost,IP:127.0.0.1"  # what the router's certificate names on loopback
 
 
 def needs_openssl(auth: str) -> None:
@@ -43,10 +46,18 @@ def needs_openssl(auth: str) -> None:
         pytest.skip("needs the openssl command")
 
 
-def start_acl_router(directory: Path, auth: str, edit=None) -> RouterProcess:
+def start_acl_router(
+    directory: Path,
+    auth: str,
+    edit=None,
+    host: str = LOOPBACK,
+    launcher: Sequence[str] = (),
+) -> RouterProcess:
     """`python -m deploy.router --config <the shipped ACL file, adapted> --listen
     <loopback>` for `auth` ("password" or "mtls"), ready for clients; `RouterProcess.endpoint`
-    is the endpoint clients connect to. `edit(text)`: a site's change to the file's text."""
+    is the endpoint clients connect to. `edit(text)`: a site's change to the file's text.
+    `host`: the address to listen on instead of loopback (the router's certificate then names
+    that address only), `launcher`: a command prefix, e.g. `ip netns exec NAME`."""
     text = ACL_FILE.read_text() if edit is None else edit(ACL_FILE.read_text())
     assert text.count(DICTIONARY) == 1 and text.count(TLS_TRANSPORT) == 1
     port = free_loopback_port()
@@ -54,9 +65,10 @@ def start_acl_router(directory: Path, auth: str, edit=None) -> RouterProcess:
         users = directory / "zenoh-users.txt"
         users.write_text("".join(f"{role}:{PASSWORDS[role]}\n" for role in ROLES))
         text = text.replace(DICTIONARY, str(users))
-        listen = client_endpoint = f"tcp/127.0.0.1:{port}"
+        listen = client_endpoint = f"tcp/{host}:{port}"
     elif auth == "mtls":
-        make_role_certificates(directory, tuple(ROLE_CN_PREFIX + role for role in ROLES))
+        names = LOOPBACK_NAMES if host == LOOPBACK else f"IP:{host}"
+        make_role_certificates(directory, tuple(ROLE_CN_PREFIX + role for role in ROLES), names)
         link = {
             "protocols": ["tls"],
             "tls": {
@@ -68,7 +80,8 @@ def start_acl_router(directory: Path, auth: str, edit=None) -> RouterProcess:
         }
         text = text.replace(f'"{DICTIONARY}"', "null")  # certificate CNs only
         text = text.replace(TLS_TRANSPORT, f"{TLS_TRANSPORT}\n    link: {json.dumps(link)},")
-        listen, client_endpoint = f"tls/127.0.0.1:{port}", f"tls/localhost:{port}"
+        listen = f"tls/{host}:{port}"
+        client_endpoint = f"tls/localhost:{port}" if host == LOOPBACK else listen
     else:
         raise ValueError(f"unknown auth {auth!r}")
     config_file = directory / "zenohd-acl.json5"
@@ -77,7 +90,7 @@ def start_acl_router(directory: Path, auth: str, edit=None) -> RouterProcess:
     command = [sys.executable, "-m", "deploy.router", "--config", str(config_file)]
     with open(log_path, "wb") as log:
         process = subprocess.Popen(
-            [*command, "--listen", listen], cwd=REPO_ROOT, stdout=log, stderr=log
+            [*launcher, *command, "--listen", listen], cwd=REPO_ROOT, stdout=log, stderr=log
         )
     router = RouterProcess(process, log_path, client_endpoint)
     try:
@@ -112,19 +125,24 @@ def role_session(router: RouterProcess, directory: Path, auth: str, role: str) -
     return open_session(role_config(router, directory, auth, role))
 
 
-def make_role_certificates(directory: Path, names: tuple[str, ...]) -> None:
-    """A CA, a router certificate for localhost and a client certificate per CN in `names`
-    (P-256, X.509 v3 with a subjectAltName: Zenoh's TLS refuses v1)."""
+def make_role_certificates(
+    directory: Path, names: tuple[str, ...], router_names: str = LOOPBACK_NAMES
+) -> None:
+    """A CA, a router certificate whose subjectAltName is `router_names` (openssl's form)
+    and a client certificate per CN in `names` (P-256, X.509 v3 with a subjectAltName:
+    Zenoh's TLS refuses v1)."""
     new_key = ["req", "-nodes", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1"]
     _openssl(
         directory, *new_key, "-x509", "-subj", "/CN=ca", "-keyout", "ca-key.pem", "-out", "ca.pem"
     )
-    (directory / "san.ext").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
+    (directory / "router.ext").write_text(f"subjectAltName={router_names}\n")
+    (directory / "san.ext").write_text(f"subjectAltName={LOOPBACK_NAMES}\n")
     sign = ["x509", "-req", "-CA", "ca.pem", "-CAkey", "ca-key.pem", "-CAcreateserial"]
     for name in ("router", *names):
         key, request = f"{name}-key.pem", f"{name}.csr"
+        extensions = "router.ext" if name == "router" else "san.ext"
         _openssl(directory, *new_key, "-subj", f"/CN={name}", "-keyout", key, "-out", request)
-        _openssl(directory, *sign, "-extfile", "san.ext", "-in", request, "-out", f"{name}.pem")
+        _openssl(directory, *sign, "-extfile", extensions, "-in", request, "-out", f"{name}.pem")
 
 
 def _openssl(directory: Path, *args: str) -> None:

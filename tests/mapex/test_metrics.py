@@ -16,6 +16,7 @@ from mapex.metrics import (
     building_footprint,
     coverage,
     curve_auc,
+    idle_steps,
     occupied_iou,
     predicted_occupancy,
     topological_understanding,
@@ -166,6 +167,13 @@ def test_tu_matches_per_goal_path_check(seed):
         successes.append(path is not None and not truth[path[:, 0], path[:, 1]].any())
     tu = topological_understanding(predicted, truth, start, goals)
     assert tu == pytest.approx(np.mean(successes))
+
+
+def test_idle_steps_count_the_steps_a_robot_stood_still():
+    path = np.array([[0, 0], [0, 0], [0, 1], [0, 1], [0, 1], [1, 1], [1, 1]])
+    assert idle_steps(path) == 4
+    assert idle_steps(path[:1]) == 0  # no step taken
+    assert idle_steps(np.array([[2, 3], [3, 2]])) == 0
 
 
 def test_curve_auc_is_the_mean():

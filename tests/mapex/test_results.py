@@ -3,6 +3,7 @@ disk) leaves nothing behind and says why in one line."""
 
 import errno
 
+import numpy as np
 import pytest
 
 import mapex.results as results
@@ -56,3 +57,21 @@ def test_a_run_folder_replaces_an_older_one_whole(tmp_path, short_run):
     write_results(*short_run, out)
     assert not (out / "stale.txt").exists() and (out / results.METRICS_FILE).is_file()
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
+
+
+def test_every_run_records_its_path_length_and_idle_steps(short_run):
+    result, world = short_run
+    record = results.summary(result)
+    expected = float(np.hypot(*np.diff(result.trajectory, axis=0).T).sum()) * world.resolution_m
+    assert record["path_length_m"] == pytest.approx(expected, abs=0.01) and expected > 0
+    still = int((np.diff(result.trajectory, axis=0) == 0).all(axis=1).sum())
+    assert record["idle_steps"] == [still]
+    assert record["reached"]["coverage"].keys() == {"0.8", "0.9", "0.95"}
+
+
+def test_a_team_s_path_length_is_every_robot_s_summed():
+    world = load_world("generated:2")
+    result = run_episode(world, "nearest", None, 0, 0, ExplorationConfig(steps=20), robots=2)
+    record = results.summary(result)
+    assert record["path_length_m"] == pytest.approx(sum(result.path_lengths_m), abs=0.01)
+    assert len(record["idle_steps"]) == 2 and record["team"]["robots"] == 2

@@ -58,3 +58,32 @@ def test_a_world_stopped_while_loading_a_big_map_exits_at_once(tmp_path):
     assert "serving world" not in said  # it never got as far as serving
     assert code == 128 + signal.SIGTERM, said
     assert waited < PROMPT_EXIT_S, f"exited {waited:.1f} s after SIGTERM"
+
+
+def test_a_worker_stopped_while_it_loads_its_weights_exits_at_once():
+    """SIGTERM once the worker's handler is in, before it serves: it exits at once with
+    128 + SIGTERM rather than load its weights first and exit 0 after (seconds on a loaded
+    machine: services.up's grace period ran out on such workers, issue #54)."""
+    for _attempt in range(3):  # again only when the worker served before the signal came
+        code, said = stop_a_starting_worker()
+        if "serving member" not in said:
+            break
+    assert "serving member" not in said, said  # it never got as far as serving
+    assert code == 128 + signal.SIGTERM, said
+
+
+def stop_a_starting_worker() -> tuple[int, str]:
+    """SIGTERM a predictor worker as soon as it catches SIGTERM: its exit code and log."""
+    worker = subprocess.Popen(
+        [sys.executable, "-m", "services.predictor", "--member", "g",
+         "--listen", f"tcp/127.0.0.1:{free_loopback_port()}"],
+        cwd=REPO_ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        until(lambda: catches_sigterm(worker.pid), "the worker's SIGTERM handler", 120)
+        worker.send_signal(signal.SIGTERM)
+        code = worker.wait(timeout=60)
+        return code, worker.stderr.read()
+    finally:
+        worker.kill()
+        worker.wait()

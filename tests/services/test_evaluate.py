@@ -16,6 +16,7 @@ import time
 
 import pytest
 from service_processes import REPO_ROOT, free_loopback_port, until
+from shard_runs import comparable_tables, pool_warnings, run_records
 from up_processes import pid_alive
 
 from mapex.budget import auto_steps
@@ -50,47 +51,6 @@ def evaluate(out, *extra: str, log=None) -> subprocess.Popen:
     return subprocess.Popen(
         command, cwd=REPO_ROOT, stdout=log or subprocess.DEVNULL, stderr=log or subprocess.STDOUT
     )
-
-
-def run_records(out) -> dict:
-    """Each published run's metrics.json, by folder name (hidden folders are being written)."""
-    found = sorted(out.glob("*/metrics.json"))
-    return {m.parent.name: json.loads(m.read_text()) for m in found if m.parent.name[0] != "."}
-
-
-def reproduced_part(record: dict, other: dict) -> tuple:
-    """What a rerun must reproduce of a run recorded as `record` and, in the other
-    evaluation, as `other`.
-
-    All of it (AUCs, trajectory length, re-plans) when the pool served both in time. When a
-    member did not answer in time in either, that run is degraded (DESIGN.md) and its
-    timing-dependent part is left out: after a missed metric sample its IoU and TU, after a
-    missed re-plan everything but its length.
-    """
-    if record["degraded_steps"] or other["degraded_steps"]:
-        return (record["steps"],)
-    auc, reached = dict(record["auc"]), dict(record["reached"])
-    if record["degraded_metric_samples"] or other["degraded_metric_samples"]:
-        auc, reached = {"coverage": auc["coverage"]}, {"coverage": reached["coverage"]}
-    return auc, reached, record["steps"], record["replans"]
-
-
-def comparable_tables(first: dict, second: dict) -> tuple[dict, dict]:
-    """The two evaluations' runs, each reduced to what both must agree on."""
-
-    def reduce(table: dict, other: dict) -> dict:
-        return {
-            name: reproduced_part(record, other[name]) if name in other else record
-            for name, record in table.items()
-        }
-
-    return reduce(first, second), reduce(second, first)
-
-
-def pool_warnings(*logs) -> str:
-    """The warnings of the evaluations' logs: why a member did not answer, if one did not."""
-    lines = (line for log in logs for line in log.read_text(errors="replace").splitlines())
-    return "\n".join(line for line in lines if " WARNING " in line)
 
 
 def test_episodes_cover_every_combination_with_run_folder_names():
@@ -217,6 +177,19 @@ def test_only_complete_folders_count_and_staging_is_removed(tmp_path, sound_run)
     shutil.copytree(sound_run, tmp_path / EPISODE.name)
     assert finished(EPISODE, tmp_path, plain(SHORT))
     assert remove_staging(tmp_path) == 1 and remove_staging(tmp_path) == 0
+
+
+def test_a_shard_removes_the_half_written_folders_of_its_own_episodes_only(tmp_path):
+    mine, theirs = EPISODE, dataclasses.replace(EPISODE, start=1)  # shards of one folder
+    for episode in (mine, theirs):
+        planner_folder(episode, tmp_path).mkdir()
+        (tmp_path / f".{planner_folder(episode, tmp_path).name}.k2x9_a").mkdir()  # its staging
+    (tmp_path / BROKEN_DIR).mkdir()
+    assert remove_staging(tmp_path, [mine]) == 2
+    left = sorted(p.name for p in tmp_path.iterdir())
+    theirs_folder = planner_folder(theirs, tmp_path).name
+    assert left == sorted([BROKEN_DIR, theirs_folder, f".{theirs_folder}.k2x9_a"])
+    assert remove_staging(tmp_path) == 2  # unsharded: every half-written folder
 
 
 def damage_truncated_metrics(folder):

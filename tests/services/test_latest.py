@@ -12,6 +12,7 @@ import pytest
 import zenoh
 from service_processes import until
 
+from mapex.recorder import MetricCurves
 from services.keys import robot_key
 from services.latest import LatestPublisher
 from services.messages import MapMessage, StatusMessage, decode_message
@@ -184,3 +185,43 @@ def test_a_runs_status_and_metrics_are_never_dropped(hub):
     finally:
         publisher.close()
     assert blocking == {"status", "metrics"}  # maps, path, goal: a newer one follows
+
+
+def test_every_metric_sample_and_status_arrives_in_order(hub, viewer):
+    """Samples completed together (a run's end completes its last ones at once) and
+    statuses in one publishing period all reach a subscriber, none replaced by a newer one
+    (the browser view's curves have no gaps)."""
+    got: list[tuple[str, int]] = []
+    done = threading.Event()
+
+    def heard(sample: zenoh.Sample) -> None:
+        message = decode_message(sample.payload.to_bytes())
+        got.append((message.TYPE, message.t))
+        if message.TYPE == "status" and message.state == "finished":
+            done.set()
+
+    subscribers = [
+        viewer.declare_subscriber(robot_key("latest_m", "r0", topic), heard)
+        for topic in ("metrics", "status")
+    ]
+    publisher = RunPublisher(hub[0], "latest_m", "r0")
+    try:
+        until(lambda: publisher.latest._publishers[publisher.keys["metrics"]].matching_status
+              .matching, "the subscriber's route")  # fmt: skip
+        curves = MetricCurves()
+        for t in range(0, 300, 50):  # six samples handed over in one go
+            curves.steps.append(t)
+            curves.coverage.append(t / 1000)
+            curves.iou.append(t / 2000)
+            curves.tu.append(float("nan"))
+        publisher.status(0, "running")
+        publisher._publish_metrics(curves, degraded=False)
+        publisher.status(300, "finished")
+        assert done.wait(10.0)
+    finally:
+        publisher.close()
+        for subscriber in subscribers:
+            subscriber.undeclare()
+    metrics = [t for kind, t in got if kind == "metrics"]
+    assert metrics == [0, 50, 100, 150, 200, 250]
+    assert [t for kind, t in got if kind == "status"] == [0, 300]

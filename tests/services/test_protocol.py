@@ -275,6 +275,14 @@ def test_scan_reply_converts_to_and_from_a_sensor_scan():
     np.testing.assert_array_equal(back.hit, scan.hit)
 
 
+def test_a_scan_reply_carries_its_step_and_one_without_it_still_decodes():
+    scan = Scan((5, 6), np.array([1, 4], np.uint16), np.array([True, False]))
+    assert ScanReply.decode(ScanReply.from_scan(scan, 7).encode()).t == 7
+    assert ScanReply.decode(ScanReply.from_scan(scan).encode()).t is None  # an older world's
+    with pytest.raises(ProtocolError, match="t"):
+        ScanReply.from_scan(scan, -1)
+
+
 def test_ground_truth_converts_to_and_from_a_world():
     occupancy = np.zeros((6, 7), bool)
     occupancy[0] = True

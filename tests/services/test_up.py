@@ -144,9 +144,17 @@ def test_distributed_run_equals_in_process_run_and_a_viewer_sees_its_maps(tmp_pa
     assert (tmp_path / "watch.gif").stat().st_size > 0
 
 
-def test_a_team_through_services_up_equals_the_in_process_team(tmp_path):
+@pytest.mark.parametrize(
+    "method",
+    [
+        "mapex_team",  # claims
+        pytest.param("mapex_assign", marks=pytest.mark.slow),  # teammates' poses and claims
+        pytest.param("mapex_voronoi", marks=pytest.mark.slow),  # teammates' poses
+    ],
+)
+def test_a_team_through_services_up_equals_the_in_process_team(tmp_path, method):
     steps = 200
-    up, _ = start_up(tmp_path, "team", "--method", "mapex_team", "--robots", "2",
+    up, _ = start_up(tmp_path, "team", "--method", method, "--robots", "2",
                      "--steps", str(steps))  # fmt: skip
     try:
         assert up.wait() == 0, up.log()
@@ -157,7 +165,7 @@ def test_a_team_through_services_up_equals_the_in_process_team(tmp_path):
     try:
         world = load_world(WORLD)
         config = ExplorationConfig(steps=steps)
-        expected = run_episode(world, "mapex_team", LearnedEnsemble(), 0, 0, config, robots=2)
+        expected = run_episode(world, method, LearnedEnsemble(), 0, 0, config, robots=2)
     finally:
         torch.set_num_threads(threads)
     for robot in (0, 1):

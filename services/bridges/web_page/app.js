@@ -1,13 +1,17 @@
 // services.web: the live view's page logic, no libraries (it works offline).
 //
-// The server sends a `snapshot` event (everything known) when the stream opens and an
-// `update` event per message after it (the table in services/web.py's docstring). The page
-// keeps a small model per robot (latest event per topic, trajectory, metric history), marks
-// what changed and redraws that once per animation frame. Maps are painted one canvas pixel
-// per cell (row 0 on top, as services.watch draws them); the overlay is a second canvas on
-// top, sized to the displayed map so lines stay sharp. Test hooks: every canvas carries
-// data-run, data-robot and data-kind (observed, overlay, mean, variance, metrics); the robot's
-// section and its observed canvas carry data-t, the latest step applied for that robot.
+// The server sends a `snapshot` event (everything known) when the stream opens, an `update`
+// event per message after it and a `final` event when a run ended (docs/protocol.md#the-
+// browser-view-http-routes-and-sse-events). The page keeps a small model per robot (latest
+// event per topic, trajectory, metric history), marks what changed and redraws that once per
+// animation frame. Maps are painted one canvas pixel per cell (row 0 on top, as
+// services.watch draws them); the overlay is a second canvas on top, sized to the displayed
+// map so lines, dots and the scale bar stay sharp. Test hooks (data-* attributes, listed in
+// docs/protocol.md): every canvas carries data-run, data-robot and data-kind (observed,
+// overlay, mean, variance, metrics); the robot's section and its observed canvas carry data-t,
+// the latest step applied for that robot; the metrics canvas what the values line shows and
+// how many points and segments each curve has; the overlay the scale bar's length and the
+// frontier dots' radius; the run's section and #connection how the run ended.
 
 "use strict";
 
@@ -29,10 +33,19 @@ const COLOURS = {
 };
 const TEAMMATE_COLOURS = ["#9467bd", "#2ca02c", "#8c564b", "#e377c2", "#bcbd22"];
 const FRONTIER_HUE_LOW_DEG = 240; // lowest score blue, highest red (hue 0)
-const LINE_CSS_PX = { trajectory: 1.5, path: 2, frontier: 4, goal: 7, pose: 5, teammate: 4 };
+const LINE_CSS_PX = { trajectory: 1.5, path: 2, goal: 7, pose: 5, teammate: 4 };
+const FRONTIER_RADIUS = { minCssPx: 5, ofShownWidth: 0.007, outlineCssPx: 1.5 };
+const SCALE_BAR = { // bottom left of the map, at most maxFraction of its width
+  maxFraction: 0.25, marginCssPx: 10, paddingCssPx: 5, thickCssPx: 4, tickCssPx: 5,
+  fontCssPx: 12, background: "rgba(255, 255, 255, 0.85)",
+};
+const NICE_MULTIPLES = [1, 2, 5]; // round lengths and axis steps: 1, 2, 5 times a power of 10
 const METRICS_CANVAS_PX = [480, 400];
 const METRICS_PAD_PX = { left: 38, right: 12, top: 24, bottom: 30 };
-const METRIC_SERIES = [["coverage", "coverage"], ["iou", "IoU"], ["tu", "TU"]];
+const METRIC_POINT_PX = 3; // the marks of a sparse curve (TU is computed only now and then)
+const METRIC_SERIES = [ // [field, label, marked]
+  ["coverage", "coverage", false], ["iou", "IoU", false], ["tu", "TU", true],
+];
 const MAX_TRAJECTORY_POINTS = 20000; // as WebConfig.max_trajectory_points
 const MAX_METRIC_POINTS = 5000; // as WebConfig.max_metric_points
 const DRAW_FALLBACK_MS = 250; // draw even when animation frames are paused (hidden tab)
@@ -40,6 +53,7 @@ const RECONNECT_MS = 2000; // after a stream the browser gave up on
 
 const runs = new Map(); // run name -> run model
 let drawScheduled = false;
+let connection = "connecting"; // the event stream: connecting (first time), live or lost
 
 // ------------------------------------------------------------------ DOM helpers
 
@@ -70,12 +84,15 @@ function ensureRun(name) {
   let run = runs.get(name);
   if (run) return run;
   document.getElementById("waiting")?.remove();
-  const title = el("h2", {}, `run ${name}`, el("small"));
+  const state = el("span", { class: "state", hidden: "" });
+  const title = el("h2", {}, `run ${name}`, state, el("small"));
   const robots = el("div", { class: "robots" });
-  const section = el("section", { class: "run", "data-run": name }, title, robots);
+  const section = el("section", { class: "run", "data-run": name, "data-state": "running" },
+    title, robots);
   const list = document.getElementById("runs");
   list.insertBefore(section, list.firstChild); // the newest run on top
-  run = { name, world: null, section, title, robotList: robots, robots: new Map() };
+  run = { name, world: null, final: null, section, title, state, robotList: robots,
+    robots: new Map() };
   runs.set(name, run);
   return run;
 }
@@ -135,6 +152,12 @@ function applyEvent(event) {
   robot.dirty.add(event.topic);
 }
 
+function applyFinal(event) {
+  const run = ensureRun(event.run);
+  run.final = event.final;
+  showFinal(run);
+}
+
 function applySnapshot(snapshot) {
   const followed = snapshot.followed_run;
   document.getElementById("followed").textContent =
@@ -142,6 +165,7 @@ function applySnapshot(snapshot) {
   for (const [name, record] of Object.entries(snapshot.runs)) {
     const run = ensureRun(name);
     if (record.world) applyEvent(record.world);
+    applyFinal({ run: name, final: record.final });
     for (const [robotName, known] of Object.entries(record.robots)) {
       const robot = ensureRobot(run, robotName);
       robot.latest = {};
@@ -284,7 +308,13 @@ function drawOverlay(robot) {
   const size = (name) => LINE_CSS_PX[name] * cellsPerPx;
   drawLine(context, robot.trajectory, COLOURS.trajectory, size("trajectory"));
   if (robot.latest.path) drawLine(context, robot.latest.path.cells, COLOURS.path, size("path"));
-  if (robot.latest.frontiers) drawFrontiers(context, robot.latest.frontiers, size("frontier"));
+  const frontierCssPx = Math.max(FRONTIER_RADIUS.minCssPx, FRONTIER_RADIUS.ofShownWidth * shownPx);
+  canvas.dataset.frontierRadiusCssPx = frontierCssPx.toFixed(2);
+  canvas.dataset.frontiers = robot.latest.frontiers ? robot.latest.frontiers.cells.length : 0;
+  if (robot.latest.frontiers) {
+    drawFrontiers(context, robot.latest.frontiers, frontierCssPx * cellsPerPx,
+      FRONTIER_RADIUS.outlineCssPx * cellsPerPx);
+  }
   const goal = robot.latest.goal?.goal;
   if (goal) drawDiamond(context, goal, size("goal"), COLOURS.goal, cellsPerPx);
   let index = 0;
@@ -296,6 +326,38 @@ function drawOverlay(robot) {
   }
   const pose = robot.latest.pose?.pose;
   if (pose) drawDot(context, pose, size("pose"), COLOURS.pose, cellsPerPx);
+  drawScaleBar(canvas, context, cols, shownPx, robot.run.world?.resolution_m);
+}
+
+function drawScaleBar(canvas, context, cols, shownPx, resolutionM) {
+  // a round length (1, 2, 5 × 10^k m) of at most SCALE_BAR.maxFraction of the map's width
+  for (const name of ["scaleM", "scaleCells", "scaleCssPx"]) delete canvas.dataset[name];
+  if (!(resolutionM > 0)) return;
+  const lengthM = niceFloor(SCALE_BAR.maxFraction * cols * resolutionM);
+  const lengthCells = lengthM / resolutionM;
+  const lengthCssPx = (lengthCells * shownPx) / cols;
+  const label = `${lengthM} m`;
+  const { marginCssPx: margin, paddingCssPx: pad, thickCssPx: thick, tickCssPx: tick } = SCALE_BAR;
+  const cssPerCanvasPx = shownPx / canvas.width;
+  context.setTransform(1 / cssPerCanvasPx, 0, 0, 1 / cssPerCanvasPx, 0, 0); // CSS pixels
+  context.font = `${SCALE_BAR.fontCssPx}px system-ui, sans-serif`;
+  const boxW = Math.max(lengthCssPx, context.measureText(label).width) + 2 * pad;
+  const boxH = SCALE_BAR.fontCssPx + thick + tick + 3 * pad;
+  const left = margin;
+  const top = canvas.height * cssPerCanvasPx - margin - boxH;
+  context.fillStyle = SCALE_BAR.background;
+  context.fillRect(left, top, boxW, boxH);
+  const barY = top + boxH - pad - thick;
+  context.fillStyle = COLOURS.ink;
+  context.fillRect(left + pad, barY, lengthCssPx, thick);
+  context.fillRect(left + pad, barY - tick, 1, tick + thick);
+  context.fillRect(left + pad + lengthCssPx - 1, barY - tick, 1, tick + thick);
+  context.textAlign = "left";
+  context.textBaseline = "top";
+  context.fillText(label, left + pad, top + pad);
+  canvas.dataset.scaleM = String(lengthM);
+  canvas.dataset.scaleCells = String(lengthCells);
+  canvas.dataset.scaleCssPx = lengthCssPx.toFixed(1);
 }
 
 function centre([row, col]) {
@@ -312,27 +374,26 @@ function drawLine(context, cells, colour, width) {
   context.stroke();
 }
 
-function drawFrontiers(context, frontiers, side) {
+function drawFrontiers(context, frontiers, radius, outline) {
   const finite = frontiers.scores.filter((s) => s !== null);
   const low = Math.min(...finite);
   const span = Math.max(...finite) - low;
   frontiers.cells.forEach((cell, i) => {
     const score = frontiers.scores[i];
     const fraction = span > 0 ? (score - low) / span : 1;
-    context.fillStyle = score === null
+    const colour = score === null
       ? COLOURS.unscored : `hsl(${FRONTIER_HUE_LOW_DEG * (1 - fraction)}, 90%, 45%)`;
-    const [x, y] = centre(cell);
-    context.fillRect(x - side / 2, y - side / 2, side, side);
+    drawDot(context, cell, radius, colour, outline, COLOURS.ink);
   });
 }
 
-function drawDot(context, cell, radius, colour, outline) {
+function drawDot(context, cell, radius, colour, outline, outlineColour = COLOURS.outline) {
   context.beginPath();
   context.arc(...centre(cell), radius, 0, 2 * Math.PI);
   context.fillStyle = colour;
   context.fill();
   context.lineWidth = outline;
-  context.strokeStyle = COLOURS.outline;
+  context.strokeStyle = outlineColour;
   context.stroke();
 }
 
@@ -351,9 +412,15 @@ function drawDiamond(context, cell, radius, colour, outline) {
   context.stroke();
 }
 
-function niceStep(rough) {
+function niceStep(rough) { // the smallest round number (1, 2, 5 × 10^k) of at least `rough`
   const power = 10 ** Math.floor(Math.log10(rough));
-  return [1, 2, 5, 10].map((m) => m * power).find((step) => step >= rough);
+  return [...NICE_MULTIPLES, 10].map((m) => m * power).find((step) => step >= rough);
+}
+
+function niceFloor(limit) { // the largest round number (1, 2, 5 × 10^k) of at most `limit`
+  const power = 10 ** Math.floor(Math.log10(limit));
+  const found = [...NICE_MULTIPLES].reverse().map((m) => m * power).find((v) => v <= limit) ?? power;
+  return Number(found.toPrecision(1)); // 0.2, not 0.20000000000000004
 }
 
 function drawMetrics(robot) {
@@ -387,13 +454,23 @@ function drawMetrics(robot) {
   context.fillText("t (steps)", pad.left + plotW / 2, canvas.height - 3);
   context.textAlign = "left";
   let legendX = pad.left;
-  for (const [field, label] of METRIC_SERIES) {
-    const points = history.filter((sample) => sample[field] !== null);
+  for (const [field, label, marked] of METRIC_SERIES) {
+    // a line through the samples where the metric is known (null gaps skipped), marks on them
+    const points = history.filter((sample) => sample[field] !== null && sample[field] !== undefined);
     context.strokeStyle = context.fillStyle = COLOURS[field];
     context.lineWidth = 2;
     context.beginPath();
     points.forEach((p, i) => (i ? context.lineTo(x(p.t), y(p[field])) : context.moveTo(x(p.t), y(p[field]))));
     context.stroke();
+    if (marked) {
+      for (const p of points) {
+        context.beginPath();
+        context.arc(x(p.t), y(p[field]), METRIC_POINT_PX, 0, 2 * Math.PI);
+        context.fill();
+      }
+    }
+    canvas.dataset[`${field}Points`] = points.length;
+    canvas.dataset[`${field}Segments`] = Math.max(0, points.length - 1);
     context.fillRect(legendX, 8, 14, 3);
     context.fillText(label, legendX + 18, 14);
     legendX += 30 + context.measureText(label).width;
@@ -416,7 +493,7 @@ function showText(robot) {
   text.state.dataset.state = status ? status.state : "waiting";
   text.t.textContent = robot.t === null ? "" : `t = ${robot.t}`;
   text.detail.textContent = status?.detail || "";
-  const metrics = latest.metrics;
+  const metrics = latest.metrics; // the latest metrics message, whatever the curve holds
   const tu = robot.metrics.findLast((sample) => sample.tu !== null); // TU is sampled less often
   text.values.replaceChildren(...(metrics ? [
     el("span", { class: "coverage" }, `coverage ${(100 * metrics.coverage).toFixed(1)} %`),
@@ -424,6 +501,12 @@ function showText(robot) {
     el("span", {}, `(t = ${metrics.t}${metrics.degraded ? ", degraded" : ""})`),
     el("span", { class: "tu" }, tu ? `TU ${tu.tu.toFixed(3)} (t = ${tu.t})` : "TU –"),
   ] : []));
+  const shown = robot.canvases.metrics.dataset;
+  for (const [name, value] of [["coverage", metrics?.coverage], ["coverageT", metrics?.t],
+    ["iou", metrics?.iou], ["tu", tu?.tu], ["tuT", tu?.t]]) {
+    if (value === undefined) delete shown[name];
+    else shown[name] = String(value);
+  }
   const caption = (topic, name, extra = "") =>
     latest[topic] ? `${name} · t = ${latest[topic].t}${extra}` : `${name}: waiting`;
   text.observed.textContent = caption("observed_map", "observed map");
@@ -437,12 +520,36 @@ function showText(robot) {
   }
 }
 
+function showFinal(run) {
+  const final = run.final;
+  run.section.dataset.state = final ? final.state : "running";
+  if (final) run.section.dataset.finalT = final.t;
+  else delete run.section.dataset.finalT;
+  run.state.hidden = !final;
+  run.state.dataset.state = final ? final.state : "";
+  run.state.textContent = final ? `${final.state} · t = ${final.t}` : "";
+  showConnection();
+}
+
 // ------------------------------------------------------------------ the stream
 
-function setConnection(state, label) {
+function runsEnded() {
+  // "finished" or "failed" once every run shown has ended (any failed: failed); else null
+  const all = [...runs.values()];
+  if (!all.length || all.some((run) => !run.final)) return null;
+  return all.some((run) => run.final.state === "failed") ? "failed" : "finished";
+}
+
+function showConnection() {
+  // live, or how the runs ended while the server is up ("ended") or after it went
+  // ("closed"); reconnecting only while a run may still go on
+  const ended = runsEnded();
+  let shown = ["connecting", "connecting…"];
+  if (connection === "live") shown = ended ? ["ended", ended] : ["live", "live"];
+  else if (ended) shown = ["closed", `${ended} (server closed)`];
+  else if (connection === "lost") shown = ["reconnecting", "reconnecting…"];
   const badge = document.getElementById("connection");
-  badge.dataset.state = state;
-  badge.textContent = label;
+  [badge.dataset.state, badge.textContent] = shown;
 }
 
 function handle(message, apply) {
@@ -456,11 +563,13 @@ function handle(message, apply) {
 
 function connect() {
   const source = new EventSource("events");
-  source.addEventListener("open", () => setConnection("live", "live"));
+  source.addEventListener("open", () => { connection = "live"; showConnection(); });
   source.addEventListener("snapshot", (message) => handle(message, applySnapshot));
   source.addEventListener("update", (message) => handle(message, applyEvent));
-  source.addEventListener("error", () => {
-    setConnection("reconnecting", "reconnecting…");
+  source.addEventListener("final", (message) => handle(message, applyFinal));
+  source.addEventListener("error", () => { // the browser retries by itself unless CLOSED
+    connection = "lost";
+    showConnection();
     if (source.readyState === EventSource.CLOSED) setTimeout(connect, RECONNECT_MS);
   });
 }

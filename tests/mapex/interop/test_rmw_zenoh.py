@@ -55,11 +55,17 @@ def test_names_with_slashes_are_mangled():
 
 
 @pytest.mark.parametrize(
-    ("latched", "depth", "text"),
-    [(True, 1, ":1:,1:,:,:,,"), (False, 10, "::,10:,:,:,,"), (False, 42, "::,:,:,:,,")],
+    ("latched", "depth", "reliable", "text"),
+    [
+        (True, 1, True, ":1:,1:,:,:,,"),
+        (False, 10, True, "::,10:,:,:,,"),
+        (False, 42, True, "::,:,:,:,,"),
+        (False, 1, False, "2::,1:,:,:,,"),  # /clock: rclcpp::ClockQoS
+        (False, 100, True, "::,100:,:,:,,"),  # /tf: tf2_ros::DynamicBroadcasterQoS
+    ],
 )
-def test_qos_text(latched, depth, text):
-    assert rmw.qos_text(latched, depth) == text
+def test_qos_text(latched, depth, reliable, text):
+    assert rmw.qos_text(latched, depth, reliable) == text
     assert text.count(":") == 5  # the six fields rmw_zenoh's parser needs
 
 
@@ -87,6 +93,63 @@ def test_the_attachment_matches_zenohs_own_serialiser():
 def test_gids_are_stable_and_differ_between_publishers():
     assert rmw.publisher_gid("a") == rmw.publisher_gid("a") != rmw.publisher_gid("b")
     assert len(rmw.publisher_gid("a")) == 16
+
+
+# XXH3-128 (seed 0) values of the reference implementation (Cyan4973/xxHash, the C library
+# rmw_zenoh_cpp's simplified_xxhash3.cpp is cut from), as (low64, high64)
+XXH3_128 = {
+    b"": (0x6001C324468D497F, 0x99AA06D3014798D8),  # xxHash's published empty-input value
+}
+# gid = XXH3-128 of the whole token, low64 then high64 little-endian (rmw_zenoh_cpp
+# liveliness_utils.cpp, Entity::Entity); values from the reference library
+TOKEN_GIDS = {
+    (
+        f"@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/"
+        f"std_msgs::msg::dds_::String_/{STRING_HASH}/::,7:,:,:,,"
+    ): "ac170f31eadcd9ff0cd86d7a17907d1c",  # 184 bytes: the 129-240 branch
+    (
+        "@ros2_lv/0/8b20917502ee955ac4476e0266340d5c/0/3/MP/%/%/mapex_bridge/%mapex%"
+        "a_very_long_run_name_for_the_long_branch_of_xxh3_0123456789%r0%prediction_variance/"
+        "nav_msgs::msg::dds_::OccupancyGrid_/"
+        "RIHS01_8d348150c12913a31ee0ec170fbf25089e4745d17035792a1ba94d6f0bc0cfc7/:1:,1:,:,:,,"
+    ): "6c78ce15d87b5a01adc05cccb9d4dd20",  # 278 bytes: the long-input loop
+}
+
+
+def test_the_gid_is_xxh3_128_of_the_token_as_rmw_zenoh_makes_it():
+    from mapex.interop.xxh3 import xxh3_128
+
+    for data, value in XXH3_128.items():
+        assert xxh3_128(data) == value
+    for token, gid in TOKEN_GIDS.items():
+        assert rmw.publisher_gid(token).hex() == gid
+
+
+# XXH3-128 of bytes (7 i + 3) % 256, i < length, by the reference library: every branch of
+# the algorithm (1-3, 4-8, 9-16, 17-128, 129-240 bytes, and the long loop, one block and more)
+XXH3_128_BY_LENGTH = {
+    1: (0x13E608BC156DEFED, 0x22BBB76B211A39BA),
+    3: (0xA9088DDA485B481C, 0xCE31763CBF8245A5),
+    4: (0x788A609154B0FE20, 0x47197970590746B1),
+    8: (0x3CD024E3D63A1588, 0xE3BC8A5F46171555),
+    9: (0xEAFAB1C7F123109F, 0xC72C88247A9A56D7),
+    16: (0x60D75C5E47D40A24, 0xCE0B9647AB24F884),
+    17: (0xEEED7654312A26D7, 0xBFD327EDCC2FBD12),
+    128: (0xC580008B6C92AC53, 0x1B1962A096BAC78B),
+    129: (0xBD91CE7ACE4D385B, 0x293E4968C4619023),
+    240: (0x04E0B5F034BEE80B, 0xAD46C1021B076BC7),
+    241: (0x8BEADD3A8874FE17, 0xAC6C3492C3D6B45D),
+    1024: (0x9B81661C641C72B1, 0x18BC0EACA9A33636),
+    2049: (0x55AED42C9F1554B6, 0xFC9DA7340154DC6C),
+}
+
+
+@pytest.mark.parametrize("length", sorted(XXH3_128_BY_LENGTH))
+def test_xxh3_128_matches_the_reference_library_at_every_branch(length):
+    from mapex.interop.xxh3 import xxh3_128
+
+    data = bytes((7 * i + 3) % 256 for i in range(length))
+    assert xxh3_128(data) == XXH3_128_BY_LENGTH[length]
 
 
 @pytest.mark.parametrize("ros_type", sorted(PUBLISHED_HASHES))

@@ -75,6 +75,8 @@ EXPECTED_SIDE = {
     "mapex_plus_team": "right",
     "nearest_team": "left",
     "mapex_independent": "right",
+    "mapex_assign": "right",
+    "mapex_voronoi": "right",
 }
 
 

@@ -3,6 +3,7 @@ on small synthetic results folders written in the format of mapex.results."""
 
 import json
 import math
+import shutil
 import subprocess
 import sys
 
@@ -14,6 +15,7 @@ from mapex.methods import ABLATIONS, BEYOND_PAPER, FOLLOW_UP, MAIN_COMPARISON
 from mapex.report import (
     auc_table,
     choose_snapshot_runs,
+    load_folders,
     load_runs,
     load_snapshots,
     load_trajectories,
@@ -27,6 +29,7 @@ from mapex.report import (
     write_report,
 )
 from mapex.report.config import ReportConfig
+from mapex.results import CAMPAIGN_FILE, campaign_record
 
 SHAPE = (12, 18)
 
@@ -414,3 +417,95 @@ def test_snapshots_without_prediction_or_file(tmp_path):
     assert pairs[1][1].at(500) is None
     steps = plot_snapshots(tmp_path / "s.png", pairs, ReportConfig(snapshot_steps=(100, 300)))
     assert steps == (100,) and is_png(tmp_path / "s.png")
+
+
+# ---------------------------------------------------------------- merging shards' folders
+
+
+def split_into_shards(results, root, count: int = 3) -> list:
+    """The run folders of `results` dealt over `count` new folders, as shards write them."""
+    shards = [root / f"shard-{k}" for k in range(count)]
+    for k, run in enumerate(sorted(p for p in results.iterdir() if p.is_dir())):
+        shards[k % count].mkdir(parents=True, exist_ok=True)
+        shutil.copytree(run, shards[k % count] / run.name)
+    return shards
+
+
+def test_the_merged_shards_report_what_one_folder_of_them_all_does(results, tmp_path):
+    shards = split_into_shards(results, tmp_path)
+    assert main([str(results), "--allow-missing"]) == 0
+    assert main([*map(str, shards), "--out", str(tmp_path / "merged"), "--allow-missing"]) == 0
+    whole = json.loads((results / "report" / "report.json").read_text())
+    assert json.loads((tmp_path / "merged" / "report.json").read_text()) == whole
+    whole_md = (results / "report" / "report.md").read_text()
+    assert (tmp_path / "merged" / "report.md").read_text() == whole_md
+
+
+def test_an_episode_in_two_folders_counts_once_when_its_records_agree(results, tmp_path):
+    name, twin = "generated_1-mapex-start0-seed0", tmp_path / "twin"
+    shutil.copytree(results / name, twin / name)
+    metrics_path = twin / name / "metrics.json"
+    metrics = json.loads(metrics_path.read_text())  # run again: other time, other workers
+    metrics |= {"wall_time_s": 9.5, "member_workers": {"replans": [[0, ["ev7-g-0"]]]}}
+    metrics_path.write_text(json.dumps(metrics))
+    runs = load_folders([results, twin])
+    assert [r.name for r in runs] == [r.name for r in load_runs(results)]
+    assert runs[0].path.parent == results  # the first folder's is kept
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [({"auc": {"coverage": 0.61, "iou": 0.5, "tu": 0.4}}, "auc.coverage (0.61, not 0.6)"),
+     ({"replans": 4}, "replans (4, not 3)"), ({"extra": 1}, "the fields they hold")],
+)  # fmt: skip
+def test_an_episode_in_two_folders_with_different_records_is_refused(
+    results, tmp_path, capsys, change, field
+):
+    name = "generated_1-mapex-start0-seed0"
+    shutil.copytree(results / name, tmp_path / "other" / name)
+    metrics = json.loads((tmp_path / "other" / name / "metrics.json").read_text()) | change
+    (tmp_path / "other" / name / "metrics.json").write_text(json.dumps(metrics))
+    out = tmp_path / "merged"
+    assert main([str(results), str(tmp_path / "other"), "--out", str(out), "--allow-missing"]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and name in error[0] and field in error[0]
+    assert str(results) in error[0] and str(tmp_path / "other") in error[0]
+    assert not out.exists()
+
+
+def write_campaign(folder, names: list[str], shards: int = 3) -> None:
+    record = campaign_record(dict.fromkeys(names, 200), {}, shards)
+    (folder / CAMPAIGN_FILE).write_text(json.dumps(record))
+
+
+def test_missing_episodes_are_the_ones_a_campaign_lists_and_no_folder_holds(tmp_path, capsys):
+    shards = [tmp_path / "a", tmp_path / "b"]
+    write_run(shards[0], "w", "mapex", 0)
+    write_run(shards[1], "w", "nearest", 0)
+    listed = ["w-mapex-start0-seed0", "w-nearest-start0-seed0", "w-nearest-start1-seed0"]
+    for folder in shards:
+        write_campaign(folder, listed)  # every shard lists every episode
+    out = str(tmp_path / "merged")
+    assert main([*map(str, shards), "--out", out]) == 2  # nearest start 1 never ran
+    error = capsys.readouterr().err
+    assert "1 run(s) missing" in error and "w-nearest-start1-seed0" in error
+    assert main([*map(str, shards), "--out", out, "--allow-missing"]) == 0
+    text = (tmp_path / "merged" / "report.md").read_text()
+    assert "reported without 1 missing" in text and "w-nearest-start1-seed0" in text
+    write_run(shards[1], "w", "nearest", 1)
+    assert main([*map(str, shards), "--out", out]) == 2  # and now mapex on start 1 (inferred)
+    assert "w-mapex-start1-seed0" in capsys.readouterr().err
+    write_run(shards[0], "w", "mapex", 1)
+    assert main([*map(str, shards), "--out", out]) == 0  # complete now
+
+
+def test_merge_errors_are_one_line(tmp_path, capsys):
+    write_run(tmp_path / "a", "w", "mapex")
+    write_run(tmp_path / "b", "w", "nearest")
+    assert main([str(tmp_path / "a"), str(tmp_path / "b")]) == 2
+    assert "name the merged report's folder with --out" in capsys.readouterr().err
+    assert main([str(tmp_path / "a"), str(tmp_path / "a")]) == 0  # one folder named twice
+    (tmp_path / "b" / CAMPAIGN_FILE).write_text("{")
+    assert main([str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "m")]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and CAMPAIGN_FILE in error[0] and "unreadable" in error[0]

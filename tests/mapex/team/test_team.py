@@ -149,8 +149,8 @@ def test_claims_made_at_one_step_settle_the_same_whatever_their_order():
 
 def test_only_the_team_methods_coordinate_and_every_method_is_made_for_teams_or_not():
     coordinating = {name for name, method in METHODS.items() if method.coordinates}
-    assert coordinating == {"mapex_team", "mapex_plus_team", "nearest_team"}
-    assert set(TEAM_METHODS) == coordinating | {"mapex_independent"}
+    assert coordinating == {"mapex_team", "mapex_plus_team", "nearest_team", "mapex_assign"}
+    assert set(TEAM_METHODS) == coordinating | {"mapex_independent", "mapex_voronoi"}
 
 
 # ----------------------------------------------------------------------------- the loop

@@ -37,7 +37,14 @@ from mapex.grid import FREE, OCCUPIED, UNKNOWN
 from mapex.worlds import load_world
 from services.bridges.follow import Update
 from services.bridges.web import WebView, check_host, host_header_allowed, is_loopback_host, run_cli
-from services.bridges.web_state import EventClient, MapThrottle, ViewState, encode_update, sse_frame
+from services.bridges.web_state import (
+    EventClient,
+    MapThrottle,
+    ViewState,
+    encode_update,
+    final_event,
+    sse_frame,
+)
 from services.config import WebConfig
 from services.keys import robot_key, run_key
 from services.messages import (
@@ -67,6 +74,11 @@ UP_STEPS = 1000  # the run goes on well past the checks; it is killed after them
 UP_FIRST_STEP_DEADLINE_S = 150.0  # up starts four torch workers before the first step
 ADVANCE_DEADLINE_S = 30.0
 OBSERVED_SELECTOR = 'canvas[data-run="{run}"][data-robot="r0"][data-kind="{kind}"]'
+SHORT_RUN_STEPS = 600  # metrics every 50 steps, TU every 100: several of each, then the end
+LIVE_CHECKS = 3  # times the page's metrics are compared with the view's while the run goes on
+RECONNECT_TRIES_S = 3.0  # several of the page's reconnection tries (WebConfig.retry_ms 1 s)
+ROUND_MULTIPLES = (1, 2, 5)  # a scale bar's length: one of these times a power of ten
+MIN_FRONTIER_RADIUS_CSS_PX = 5.0
 WHITE_RGB, GREY_RGB = 0xFFFFFF, 0x808080  # free and unknown cells on the page
 
 
@@ -192,8 +204,54 @@ def test_the_snapshot_is_json_of_everything_known_and_old_runs_are_forgotten():
     assert run_a["robots"]["r0"]["latest"]["observed_map"]["width"] == SHAPE[1]
     assert run_a["robots"]["r0"]["t"] == 3 and run_a["robots"]["r0"]["trajectory"] == []
     assert snapshot["runs"]["b"]["robots"]["r1"]["latest"]["goal"]["goal"] == [1, 2]
+    assert run_a["final"] is None  # its robot never said finished
     state.apply(_update("pose", PoseMessage(1, (0, 0)), run="c"))
     assert list(state.runs) == ["b", "c"]  # "a" was updated least recently
+
+
+def _status(t: int, state: str, robot: str = "r0", run: str = "demo") -> Update:
+    return _update("status", StatusMessage(t, state), run=run, robot=robot)
+
+
+def test_a_run_ends_once_every_robot_of_it_said_finished_or_failed():
+    state = ViewState()
+    assert state.final("demo") is None  # not known at all
+    state.apply(_update("world_info", _world_info(), robot=None))
+    assert state.final("demo") is None  # no robot yet
+    state.apply(_status(0, "running"))
+    state.apply(_update("pose", PoseMessage(3, (1, 1)), robot="r1"))  # r1: no status yet
+    state.apply(_status(300, "finished"))
+    assert state.final("demo") is None
+    state.apply(_status(5, "running", robot="r1"))
+    assert state.final("demo") is None
+    state.apply(_status(280, "finished", robot="r1"))
+    assert state.final("demo") == {"state": "finished", "t": 300}  # the latest step of them
+    assert state.snapshot()["runs"]["demo"]["final"] == {"state": "finished", "t": 300}
+    state.apply(_status(290, "failed", robot="r1"))
+    assert state.final("demo") == {"state": "failed", "t": 300}  # any failed: failed
+    state.apply(_update("pose", PoseMessage(1, (2, 2)), robot="r2"))  # a robot joined late
+    assert state.final("demo") is None
+    assert final_event("demo", None) == {"run": "demo", "final": None}
+
+
+def test_the_view_sends_a_final_event_after_the_status_that_ended_the_run(hub):
+    with _view(hub[0]) as view:
+        client, snapshot = view.subscribe()
+        assert b"event: snapshot" in snapshot
+        view.on_update(_status(0, "running", run="web_end"))
+        view.on_update(_status(120, "finished", run="web_end"))
+        view.on_update(_status(120, "finished", run="web_end"))  # a repeat: no second final
+        frames = [client.next_frame(0.01) for _ in range(5)]
+        view.unsubscribe(client)
+    assert frames[4] == b": keep-alive\n\n"  # nothing more: the repeat changed nothing
+    events = [
+        (frame.split(b"\n")[0].decode(), json.loads(frame.split(b"\n")[1][len(b"data: ") :]))
+        for frame in frames[:4]
+    ]
+    names = [name for name, _ in events]
+    assert names == ["event: update", "event: update", "event: final", "event: update"]
+    assert events[1][1]["state"] == "finished" and events[1][1]["t"] == 120
+    assert events[2][1] == {"run": "web_end", "final": {"state": "finished", "t": 120}}
 
 
 def test_an_event_client_sends_keepalives_and_closes_when_too_far_behind():
@@ -207,6 +265,11 @@ def test_an_event_client_sends_keepalives_and_closes_when_too_far_behind():
     assert other.next_frame(0.01) == b"one"
     other.close()
     assert other.next_frame(0.01) is None and not other.push(b"late")
+    closing = EventClient(max_queued_events=2)
+    closing.push(b"last words")
+    closing.close(drain=True)  # the view closes: what is queued still goes out
+    assert not closing.push(b"late") and closing.next_frame(0.01) == b"last words"
+    assert closing.next_frame(0.01) is None
 
 
 @pytest.mark.parametrize(
@@ -436,6 +499,25 @@ def test_a_stalled_browser_is_let_go_and_a_closed_view_ends_every_stream(hub):
     listening.close()
 
 
+def test_a_closing_view_still_sends_what_it_queued_then_ends_the_streams(hub):
+    with _view(hub[0]) as view:
+        stream = EventStream(view.port)
+        assert stream.next_event()[0] == "snapshot"
+        until(lambda: view.clients == 1, "the stream to be counted")
+        view.on_update(_status(40, "finished", run="web_bye"))
+    try:  # closed right after the run's last status: the page still learns how it ended
+        seen = stream.wait_for(
+            "the status and the final event",
+            _is_update("status", 40, "web_bye"),
+            lambda name, data: name == "final" and data["final"]["t"] == 40,
+        )
+        assert [name for name, _ in seen] == ["update", "final"]
+        with pytest.raises((EOFError, ConnectionError)):
+            stream.next_event()
+    finally:
+        stream.close()
+
+
 def test_a_host_beyond_loopback_and_a_taken_port_are_refused(hub):
     with pytest.raises(ValueError, match="not a loopback address"):
         WebView(hub[0], None, WebConfig(host="0.0.0.0", port=0))
@@ -638,3 +720,106 @@ def _put_junk(endpoint: str, run: str, processes: ServiceProcesses) -> None:
         until(dropped, "the view to drop the malformed payloads", EVENT_DEADLINE_S)
     finally:
         session.close()
+
+
+# ---------------------------------------------------------------------- a short run to its end
+
+
+PAGE_FACTS = """
+const robot = `[data-run="${arguments[0]}"][data-robot="r0"]`;
+const data = (selector) => ({...(document.querySelector(selector)?.dataset || {})});
+const badge = document.getElementById("connection");
+return {metrics: data(`canvas${robot}[data-kind="metrics"]`),
+        overlay: data(`canvas${robot}[data-kind="overlay"]`),
+        run: data(`section.run[data-run="${arguments[0]}"]`),
+        connection: {state: badge.dataset.state, text: badge.textContent}};
+"""
+
+
+def _page(driver, run: str) -> dict:
+    """What the page shows of `run`'s robot r0: its data-* hooks (docs/protocol.md)."""
+    return driver.execute_script(PAGE_FACTS, run)
+
+
+def _robot_state(url: str, run: str) -> dict:
+    return json.loads(_get(url + "state")[2])["runs"][run]["robots"]["r0"]
+
+
+def _check_shown_metrics(driver, url: str, run: str) -> None:
+    """The page shows the latest metrics message the view has (or a newer one) within a
+    short wait, with the coverage of that sample."""
+    latest = _robot_state(url, run)["latest"]["metrics"]
+    until(
+        lambda: int(_page(driver, run)["metrics"].get("coverageT", -1)) >= latest["t"],
+        f"the page to show the metrics of t = {latest['t']}",
+        EVENT_DEADLINE_S,
+    )
+    shown = _page(driver, run)["metrics"]
+    samples = {m["t"]: m for m in _robot_state(url, run)["metrics_history"]}
+    assert float(shown["coverage"]) == samples[int(shown["coverageT"])]["coverage"], shown
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(
+    not (CHROMIUM.exists() and CHROMEDRIVER.exists()),
+    reason="needs Debian's /usr/bin/chromium and /usr/bin/chromedriver",
+)
+def test_a_short_run_is_shown_to_its_end_in_headless_chromium(tmp_path):
+    endpoint, run = f"tcp/127.0.0.1:{free_loopback_port()}", "webend-0"
+    up = UpProcess(
+        tmp_path / "up.log", "--world", "default", "--listen", endpoint, "--run-prefix",
+        "webend", "--out", str(tmp_path / "runs"), "--steps", str(SHORT_RUN_STEPS),
+    )  # fmt: skip
+    processes = ServiceProcesses(endpoint, tmp_path)
+    driver = None
+    try:
+        web = processes.spawn("web", "services.web", "--run", run, "--port", "0")
+        url = _served_url(processes, "web")
+        driver = _headless_chromium(tmp_path / "chromium")
+        driver.get(url)
+        until(
+            lambda: up.process.poll() is not None or "coverageT" in _page(driver, run)["metrics"],
+            "the page to show a metric sample",
+            UP_FIRST_STEP_DEADLINE_S,
+        )
+        for _ in range(LIVE_CHECKS):  # while the run goes on (it may be over already)
+            if up.process.poll() is None:
+                _check_shown_metrics(driver, url, run)
+        assert up.wait() == 0, up.log()
+        final = until(lambda: json.loads(_get(url + "state")[2])["runs"][run]["final"], "final")
+        assert final == {"state": "finished", "t": SHORT_RUN_STEPS}
+        until(lambda: _page(driver, run)["run"]["state"] == "finished", "the run shown ended")
+        page = _page(driver, run)
+        assert page["run"]["finalT"] == str(SHORT_RUN_STEPS)
+        assert page["connection"] == {"state": "ended", "text": "finished"}
+        _check_shown_metrics(driver, url, run)
+        assert page["metrics"]["coverageT"] == str(SHORT_RUN_STEPS)  # the last sample
+
+        history = _robot_state(url, run)["metrics_history"]
+        tu_known = sum(sample["tu"] is not None for sample in history)
+        assert tu_known >= 2  # TU at t = 0, 100, ...: drawn as a line through them
+        assert page["metrics"]["tuPoints"] == str(tu_known)
+        assert page["metrics"]["tuSegments"] == str(tu_known - 1)
+
+        world = json.loads(_get(url + "state")[2])["runs"][run]["world"]
+        overlay = page["overlay"]
+        scale_m, scale_cells = float(overlay["scaleM"]), float(overlay["scaleCells"])
+        assert scale_cells * world["resolution_m"] == pytest.approx(scale_m)
+        assert 0 < scale_cells <= world["shape"][1]  # it fits on the map
+        power = 10 ** np.floor(np.log10(scale_m))
+        assert any(scale_m == pytest.approx(m * power) for m in ROUND_MULTIPLES)
+        assert float(overlay["frontierRadiusCssPx"]) >= MIN_FRONTIER_RADIUS_CSS_PX
+        assert int(overlay["frontiers"]) > 0
+
+        web.send_signal(signal.SIGINT)
+        assert web.wait(STOP_DEADLINE_S) == 0
+        closed = {"state": "closed", "text": "finished (server closed)"}
+        until(lambda: _page(driver, run)["connection"] == closed, "the closed server shown")
+        time.sleep(RECONNECT_TRIES_S)  # the browser tries to reconnect meanwhile, and fails
+        assert _page(driver, run)["connection"] == closed
+    finally:
+        if driver is not None:
+            driver.quit()
+        processes.kill_all()
+        up.kill()
+    assert "Traceback" not in processes.log_of("web")
