@@ -1,11 +1,11 @@
 """A live Foxglove WebSocket server with a run's topics (`--foxglove` on services.up and
 services.evaluate), for users of the Foxglove app (open a connection to ws://127.0.0.1:8765).
 
-It serves the same channels as an MCAP recording (`mapex.interop.mcap_file`): each ROS 2
-topic as CDR with its ros2msg schema, and beside it the Foxglove-schema channel
-(`/foxglove/...`), over the Foxglove SDK's WebSocket protocol (subprotocol
-`SUBPROTOCOL`). Channels are made as topics first appear, in a context of this server's
-own. Needs the Foxglove SDK (`pip install -e '.[foxglove]'`).
+It serves the channels of both recordings (`mapex.interop.mcap_file`: `--record` and
+`--record-foxglove`): each ROS 2 topic as CDR with its ros2msg schema, and beside it the
+Foxglove-schema channel (`/foxglove/...`) where there is one, over the Foxglove SDK's
+WebSocket protocol (subprotocol `SUBPROTOCOL`). Channels are made as topics first appear,
+in a context of this server's own. Needs the Foxglove SDK (`pip install -e '.[foxglove]'`).
 
 Two things the SDK does not do by itself:
 
