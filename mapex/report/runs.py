@@ -206,7 +206,15 @@ def missing_runs(runs: Iterable[RunRecord]) -> list[str]:
     have = {(r.world, r.method, r.start, r.seed) for r in runs}
     cells = {(r.world, r.start, r.seed) for r in runs}
     wanted = {(w, m, s, seed) for (w, s, seed) in cells for m in methods}
-    return sorted(folder_name(*run) for run in wanted - have)
+    return sorted(_run_folder(*run) for run in wanted - have)
+
+
+def _run_folder(world: str, method: str, start: str, seed: int) -> str:
+    """The folder of a run of `method` as the report labels it: a team (`mapex_team x2`)
+    is `<world>-mapex_team-<start>-seed<s>-team2`, as `mapex.results.episode_name` writes."""
+    name, _, robots = method.partition(" x")
+    folder = folder_name(world, name, start, seed)
+    return f"{folder}-team{robots}" if robots else folder
 
 
 def load_run(folder: Path) -> RunRecord:

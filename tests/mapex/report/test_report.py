@@ -29,6 +29,7 @@ from mapex.report import (
     write_report,
 )
 from mapex.report.config import ReportConfig
+from mapex.report.runs import RunRecord
 from mapex.results import CAMPAIGN_FILE, campaign_record
 
 SHAPE = (12, 18)
@@ -366,6 +367,18 @@ def test_missing_runs_are_every_method_on_every_world_start_and_seed(results):
         "generated_1-upen-start0-seed0",
         "generated_2-upen-start0-seed0",
     ]
+
+
+def test_a_missing_team_run_is_named_as_its_folder_would_be(tmp_path):
+    """A team's run is labelled `mapex_team x2` but lives in `...-seed0-team2`."""
+    team = {"robots": 2, "overlap": 0.5}
+    runs = [
+        RunRecord(tmp_path / name, {"world": "generated:1", "method": method,
+                                    "start_index": start, "seed": 0, "team": team}, *[None] * 4)
+        for name, method, start in (("a", "mapex_team", 0), ("b", "mapex_team", 1),
+                                    ("c", "mapex_assign", 0))
+    ]  # fmt: skip
+    assert missing_runs(runs) == ["generated_1-mapex_assign-start1-seed0-team2"]
 
 
 def test_a_report_with_missing_or_broken_runs_is_refused_unless_allowed(results, capsys):
