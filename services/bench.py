@@ -143,6 +143,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--hung-steps", type=int, default=300, help="steps of the hung runs")
     parser.add_argument("--team-steps", type=int, default=300, help="steps of the team runs")
     parser.add_argument("--team-robots", type=int, default=4, help="robots of the team run")
+    parser.add_argument(
+        "--team-methods",
+        default="mapex_team",
+        help="comma-separated team methods, each benched against one robot (default: %(default)s)",
+    )
     args = parser.parse_args(argv)
     print(f"world {args.world}, {args.steps} steps, median of {args.repeat}", flush=True)
     with tempfile.TemporaryDirectory() as scratch:
@@ -225,19 +230,21 @@ def bench_hung_worker(args: argparse.Namespace, ups) -> None:
 
 
 def bench_team(args: argparse.Namespace, ups) -> None:
-    """Item 5: per-step wall time of a team run against a single robot's."""
+    """Item 5: per-step wall time of a team run (each of `--team-methods`) against a single
+    robot's."""
     steps, robots = args.team_steps, args.team_robots
-    single = ups("single", "mapex", steps=steps)
-    team = ups("team", "mapex_team", "--robots", str(robots), steps=steps)
     per_step = lambda runs: statistics.median(  # noqa: E731
         max(record["wall_time_s"] for record in run["runs"]) / steps for run in runs
     )
-    line(f"single-robot mapex, wall time per step ({steps} steps)", per_step(single) * 1e3, "ms")
-    line(f"{robots}-robot mapex_team, wall time per team step", per_step(team) * 1e3, "ms")
-    line("ratio team / single", per_step(team) / per_step(single), "x", 2.0)
     coverage = lambda runs: statistics.median(run["runs"][0]["auc"]["coverage"] for run in runs)  # noqa: E731
+    single = ups("single", "mapex", steps=steps)
+    line(f"single-robot mapex, wall time per step ({steps} steps)", per_step(single) * 1e3, "ms")
     line("coverage AUC, single robot", coverage(single), "")
-    line(f"coverage AUC, team of {robots}", coverage(team), "")
+    for method in args.team_methods.split(","):
+        team = ups(method, method, "--robots", str(robots), steps=steps)
+        line(f"{robots}-robot {method}, wall time per team step", per_step(team) * 1e3, "ms")
+        line(f"ratio {method} / single", per_step(team) / per_step(single), "x", 2.0)
+        line(f"coverage AUC, {method} team of {robots}", coverage(team), "")
 
 
 def _median(runs: list[dict], key: str) -> float:

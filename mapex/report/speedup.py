@@ -12,7 +12,9 @@ every such run at infinity. Both are the same number unless the middle run(s) ne
 there: then the median is a bound, "> x" (x counts the censored middle runs at T; for an
 even count the mean of the two middle runs). A speed-up of two such medians is the interval
 of their ratios: "> x" when only one robot's median is a bound, "< y" when only the team's
-is, "?" when both are. speedup.png plots the pooled speed-ups against N with the k-fold
+is, "?" when both are. Beside it, the median over episodes of each episode's ratio (an
+interval the same way), which does not mix the sizes of different buildings as pooled
+medians do. speedup.png plots the pooled speed-ups against N with the k-fold
 line y = N (bounds as triangles pointing the way the value lies).
 """
 
@@ -126,6 +128,9 @@ class SpeedupRow:
     median_steps: dict[float, Interval]  # coverage level -> the team's median first step
     reference_steps: dict[float, Interval]  # the same for one reference robot
     speedup: Interval  # at the configured level
+    # median over episodes of one robot's steps / the team's on that episode: scale-free
+    # where pooled medians mix buildings of different sizes
+    episode_speedup: Interval
     by_world: dict[str, Interval]  # the speed-up on each world's episodes
     path_length_m: float  # the team's path, summed over robots, mean over runs
     idle_steps: float  # per robot, mean over robots and runs
@@ -172,7 +177,12 @@ def speedup_rows(runs: Sequence[RunRecord], config: ReportConfig) -> list[Speedu
                 row = _row(method, robots, pairs, levels, config.speedup_level)
                 if (method, robots) == reference:  # itself: 1 by definition, censored or not
                     one = Interval(1.0, 1.0)
-                    row = replace(row, speedup=one, by_world=dict.fromkeys(row.by_world, one))
+                    row = replace(
+                        row,
+                        speedup=one,
+                        episode_speedup=one,
+                        by_world=dict.fromkeys(row.by_world, one),
+                    )
                 rows.append(row)
     return rows
 
@@ -202,11 +212,22 @@ def _row(
         median_steps={x: _median_of(team, x) for x in levels},
         reference_steps={x: _median_of(one, x) for x in levels},
         speedup=ratio(_median_of(one, level), _median_of(team, level)),
+        episode_speedup=episode_median_speedup(pairs, level),
         by_world=by_world,
         path_length_m=_mean([v for v in lengths if v is not None]),
         idle_steps=_mean(idle),
         overlap=_mean([v for v in overlaps if v is not None]),
     )
+
+
+def episode_median_speedup(pairs: Sequence[tuple[RunRecord, RunRecord]], level: float) -> Interval:
+    """The median over episodes of one robot's first step at `level` / the team's, each
+    episode's ratio an interval when a run never got there (module doc); its ends are the
+    medians of the episodes' low and high ends."""
+    ratios = [ratio(_median_of([one], level), _median_of([team], level)) for one, team in pairs]
+    if not ratios:
+        return NO_DATA
+    return Interval(_median([r.low for r in ratios]), _median([r.high for r in ratios]))
 
 
 def _median_of(runs: Sequence[RunRecord], level: float) -> Interval:
@@ -231,14 +252,20 @@ def speedup_markdown(rows: Sequence[SpeedupRow], config: ReportConfig) -> str:
     levels = list(rows[0].median_steps)
     header = ["method", "robots", "episodes"]
     header += [f"steps to {x * 100:g} %" for x in levels]
-    header += [f"speed-up at {level}", "team path (m)", "idle steps per robot", "overlap"]
+    header += [
+        f"speed-up at {level}",
+        "median per-episode speed-up",
+        "team path (m)",
+        "idle steps per robot",
+        "overlap",
+    ]
     body = []
     for row in rows:
         body.append([
             row.method, row.robots, row.episodes,
             *(row.median_steps[x].text() for x in levels),
-            row.speedup.text(2), _fmt(row.path_length_m, 0), _fmt(row.idle_steps, 0),
-            _fmt(row.overlap, 3),
+            row.speedup.text(2), row.episode_speedup.text(2), _fmt(row.path_length_m, 0),
+            _fmt(row.idle_steps, 0), _fmt(row.overlap, 3),
         ])  # fmt: skip
     worlds = sorted({w for row in rows for w in row.by_world})
     teams = [row for row in rows if (row.method, row.robots) != (config.speedup_reference, 1)]
@@ -253,7 +280,10 @@ def speedup_markdown(rows: Sequence[SpeedupRow], config: ReportConfig) -> str:
         f"speed-up: one robot's median steps to {level} / the team's (the k-fold bound is N). "
         "A run that never reached a level counts as later than its budget T: a median that "
         "falls on such runs is a bound (`> x`, with them at T), and so is a speed-up made "
-        "of one (`> x`: one robot's median is a bound; `< y`: the team's; `?`: both). Team "
+        "of one (`> x`: one robot's median is a bound; `< y`: the team's; `?`: both). The "
+        "median per-episode speed-up is the median over episodes of one robot's steps / the "
+        "team's on that episode (scale-free where pooled medians mix buildings of different "
+        "sizes; an episode's ratio is a bound when a run never got there). Team "
         "path: every robot's path summed; idle steps: steps a robot stood still while the "
         "run went on.",
         markdown_table(header, body),
@@ -277,6 +307,7 @@ def speedup_json(rows: Sequence[SpeedupRow], config: ReportConfig) -> dict:
                     f"{x:g}": v.json() for x, v in row.reference_steps.items()
                 },
                 "speedup": row.speedup.json(),
+                "episode_median_speedup": row.episode_speedup.json(),
                 "speedup_by_world": {w: v.json() for w, v in row.by_world.items()},
                 "path_length_m": _finite(row.path_length_m),
                 "idle_steps_per_robot": _finite(row.idle_steps),
@@ -292,7 +323,8 @@ def _finite(value: float) -> float | None:
 
 
 def plot_speedup(path: Path, rows: Sequence[SpeedupRow], config: ReportConfig) -> None:
-    """speedup.png: pooled speed-up against N per team method, with the k-fold line."""
+    """speedup.png: pooled speed-up against N per team method (solid) and its median per
+    episode (dotted), with the k-fold line."""
     size = config.curve_panel_inches
     fig, ax = plt.subplots(figsize=(size * 1.25, size))
     most = max(row.robots for row in rows)
@@ -302,13 +334,17 @@ def plot_speedup(path: Path, rows: Sequence[SpeedupRow], config: ReportConfig) -
     teams = [row for row in rows if (row.method, row.robots) != reference]
     for method in order_methods({row.method for row in teams}, ()):
         mine = sorted((row for row in teams if row.method == method), key=lambda r: r.robots)
-        points = [(row.robots, row.speedup) for row in mine]
-        if mine[0].robots != 1:  # N = 1 is the reference robot itself
-            points.insert(0, (1, Interval(1.0, 1.0)))
-        line = ax.plot(*_line(points), marker="o", label=method)[0]
-        for n, value in points:
-            if value.known and not value.exact:
-                _draw_bound(ax, n, value, line.get_color())
+        colour = None
+        lines = (("speedup", "-", method), ("episode_speedup", ":", f"{method}, per episode"))
+        for kind, style, label in lines:
+            points = [(row.robots, getattr(row, kind)) for row in mine]
+            if mine[0].robots != 1:  # N = 1 is the reference robot itself
+                points.insert(0, (1, Interval(1.0, 1.0)))
+            line = ax.plot(*_line(points), marker="o", linestyle=style, color=colour, label=label)
+            colour = line[0].get_color()
+            for n, value in points:
+                if value.known and not value.exact:
+                    _draw_bound(ax, n, value, colour)
     ax.set_xlabel("robots N")
     ax.set_ylabel(f"speed-up to {config.speedup_level * 100:g} % coverage")
     ax.set_xticks(ns)

@@ -111,6 +111,20 @@ def test_speedup_rows_per_world_and_pooled_on_the_shared_episodes():
     assert math.isnan(alone.overlap)
 
 
+def test_the_median_per_episode_speedup_does_not_mix_building_sizes():
+    # episodes a0 a1 b0 b1: 2, 2, 1.8 and 1000 / 700 to infinity (one robot never got there)
+    two = {(r.method, r.robots): r for r in speedup_rows(campaign(), ReportConfig())}
+    assert two[("mapex_team", 2)].episode_speedup == Interval((1.8 + 2) / 2, 2.0)
+    assert two[("mapex", 1)].episode_speedup.text(2) == "1.00"
+    # the pooled medians pair one robot's episode b with the team's episode c
+    one = {"a": 100, "b": 1000, "c": 1100}
+    team = {"a": 50, "b": 600, "c": 300}  # 2, 1.67 and 3.67 times faster
+    runs = [record(w, 0, "mapex", 1, v) for w, v in one.items()]
+    runs += [record(w, 0, "mapex_team", 2, v) for w, v in team.items()]
+    row = {(r.method, r.robots): r for r in speedup_rows(runs, ReportConfig())}[("mapex_team", 2)]
+    assert row.speedup.text(2) == "3.33" and row.episode_speedup.text(2) == "2.00"
+
+
 def test_one_robot_against_itself_is_one_even_when_it_never_got_there():
     never = [record("a", 0, "mapex", 1, None), record("a", 0, "mapex_team", 2, 500)]
     rows = speedup_rows(never, ReportConfig())
@@ -141,7 +155,7 @@ def test_the_report_has_the_speedup_section_and_figure(tmp_path):
     files, _ = write_report(runs, tmp_path / "out", warn=lambda _: None, missing=["x"])
     text = (tmp_path / "out" / "report.md").read_text()
     assert "### Speed-up over one robot" in text
-    row = f"| mapex_team | 2 | 4 | 225 | 450 | > 1000 | {850 / 450:.2f} | 200 | 5 | 0.500 |"
+    row = "| mapex_team | 2 | 4 | 225 | 450 | > 1000 | 1.89 | 1.90–2.00 | 200 | 5 | 0.500 |"
     assert row in text
     assert "| b | > 1.58 | 3.00 |" in text  # per world: 900 / 300 for four robots
     data = json.loads((tmp_path / "out" / "report.json").read_text())
