@@ -119,6 +119,16 @@ def _heap_pop(keys, ties, nodes, size):
 
 
 @njit(cache=True, inline="always")
+def _heap_room(keys, ties, nodes, size):
+    """The heap arrays, doubled when the 8 pushes of one expansion might not fit."""
+    if size + 8 > nodes.size:
+        keys = np.concatenate((keys, np.empty_like(keys)))
+        ties = np.concatenate((ties, np.empty_like(ties)))
+        nodes = np.concatenate((nodes, np.empty_like(nodes)))
+    return keys, ties, nodes
+
+
+@njit(cache=True, inline="always")
 def _octile(node, goal_r, goal_c, width):
     dr = abs(node // width - goal_r)
     dc = abs(node % width - goal_c)
@@ -151,10 +161,7 @@ def _best_first(padded, passable, width, start, goal, h_scale):
         closed[node] = True
         if node == goal:
             break
-        if size + 8 > nodes.size:
-            keys = np.concatenate((keys, np.empty_like(keys)))
-            ties = np.concatenate((ties, np.empty_like(ties)))
-            nodes = np.concatenate((nodes, np.empty_like(nodes)))
+        keys, ties, nodes = _heap_room(keys, ties, nodes, size)
         for k in range(8):
             nxt = node + target[k]
             if closed[nxt] or not passable[nxt]:

@@ -26,7 +26,7 @@ from mapex.methods.base import PlanningContext
 from mapex.methods.goals import Goal
 from mapex.methods.information_gain import MapEx
 from mapex.prediction.base import EnsemblePrediction
-from mapex.search import _HEAP_START_CAPACITY, _heap_pop, _heap_push, _move_tables
+from mapex.search import _HEAP_START_CAPACITY, _heap_pop, _heap_push, _heap_room, _move_tables
 
 
 def region_cost(
@@ -82,10 +82,7 @@ def _nearest_source(padded, passable, width, sources):
         if closed[node]:
             continue
         closed[node] = True
-        if size + 8 > nodes.size:
-            keys = np.concatenate((keys, np.empty_like(keys)))
-            ties = np.concatenate((ties, np.empty_like(ties)))
-            nodes = np.concatenate((nodes, np.empty_like(nodes)))
+        keys, ties, nodes = _heap_room(keys, ties, nodes, size)
         for k in range(8):
             nxt = node + target[k]
             if closed[nxt] or not passable[nxt]:

@@ -21,7 +21,6 @@ from mapex.methods.claims import Claim
 from mapex.methods.regions import path_voronoi, region_cost
 from mapex.methods.teammates import TeamView
 from mapex.navigation import cost_map, reachable_mask
-from mapex.prediction import make_predictor
 from mapex.prediction.base import EnsemblePrediction
 from mapex.search import shortest_path_tree
 from mapex.worlds import generate_floor_plan
@@ -186,16 +185,6 @@ def test_the_partition_runs_over_predicted_free_cells_only():
 
 
 # ----------------------------------------------------------------------------- episodes
-
-
-@pytest.fixture(scope="module")
-def world():
-    return generate_floor_plan(5)
-
-
-@pytest.fixture(scope="module")
-def predictor():
-    return make_predictor("classical")
 
 
 @pytest.mark.parametrize("name", ["mapex_assign", "mapex_voronoi"])

@@ -13,23 +13,12 @@ from mapex.grid import FREE, UNKNOWN
 from mapex.methods import METHODS, TEAM_METHODS, make_method
 from mapex.methods.base import PlanningContext
 from mapex.methods.claims import Claim, ClaimBoard
-from mapex.prediction import make_predictor
 from mapex.prediction.base import EnsemblePrediction
 from mapex.team.shared_prediction import EpochPrediction
 from mapex.team.starts import team_start_cells
-from mapex.worlds import WorldError, generate_floor_plan, load_world
+from mapex.worlds import WorldError, load_world
 
 CONFIG = ExplorationConfig(steps=120)
-
-
-@pytest.fixture(scope="module")
-def world():
-    return generate_floor_plan(5)
-
-
-@pytest.fixture(scope="module")
-def predictor():
-    return make_predictor("classical")
 
 
 # ----------------------------------------------------------------------------- starts
