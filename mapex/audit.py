@@ -39,7 +39,7 @@ from mapex.exit_codes import EXIT_FAILED, EXIT_USAGE
 from mapex.grid import FREE, OCCUPIED, UNKNOWN, Cell
 from mapex.methods import METHODS, parse_method_list
 from mapex.navigation import cost_map, reachable_mask
-from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
+from mapex.prediction import add_predictor_argument, make_predictor
 from mapex.worlds import World, WorldError, load_world, world_spec_help
 from mapex.worlds.starts import eligible_start_cells
 
@@ -88,7 +88,8 @@ def audit_run(
 ) -> AuditRow:
     """Run one episode and judge how it ended."""
     world = load_world(world_spec, config.world.max_cells)
-    ensemble = make_predictor(predictor) if METHODS[method].uses_prediction else None
+    uses = METHODS[method].uses_prediction
+    ensemble = make_predictor(predictor, world.occupancy) if uses else None
     result = run_episode(world, method, ensemble, start, 0, config)
     reachable = reachable_valid_cells(world, start, config)
     unknown = float((result.final_observed[reachable] == UNKNOWN).mean()) if reachable.any() else 0
@@ -184,8 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="seed of the start cells")  # fmt: skip
     parser.add_argument("--max-unknown", type=float, default=0.02,
                         help="flag early ends with more reachable cells unknown")  # fmt: skip
-    parser.add_argument("--predictor", default=DEFAULT_PREDICTOR, choices=sorted(PREDICTORS),
-                        help="ensemble of methods that use prediction")  # fmt: skip
+    add_predictor_argument(parser)
     parser.add_argument("--jobs", type=int, default=2, help="runs at once (processes)")
     parser.add_argument("--out", type=Path, default=None, help="also write every row as JSON")
     add_override_argument(parser)

@@ -281,6 +281,32 @@ def bench_learned(world, repeats: int, profile: bool = False) -> None:
             )
 
 
+def bench_candidates(world, repeats: int, weights_dirs: list[Path]) -> None:
+    """Each trained ensemble in `weights_dirs` (e.g. candidate network sizes): its network's
+    size and one member's whole-map prediction on one thread (default inference path), the
+    time a predictor worker spends per query."""
+    import torch
+
+    from mapex.prediction.learned import LearnedEnsemble
+    from mapex.prediction.weights import load_member
+
+    observed = explored_state(world, ExplorationConfig(), steps=300).observed
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    for directory in weights_dirs:
+        model = load_member(directory / "g.pt")
+        size = f"{model.config.channels} channels, {model.config.n_blocks} blocks"
+        parameters = sum(p.numel() for p in model.parameters())
+        predictor = LearnedEnsemble(directory, members=("g",), recent_answers=0)
+        one = median_ms(lambda p=predictor: p.predict_members(observed, (0,)), repeats)
+        report(
+            "one member, whole map, 1 thread",
+            one,
+            f"[{directory}: {size}, {parameters / 1e6:.2f} M parameters]",
+        )
+    torch.set_num_threads(threads)
+
+
 def bench_replan(world, config: ExplorationConfig, repeats: int, method_name: str) -> None:
     """One whole re-plan of `method_name` part-way through a run (t = 300): the learned
     ensemble on the known area plus sensor range (in process, two threads, as `python -m
@@ -342,6 +368,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--profile", action="store_true", help="also print where one member's prediction spends"
     )
+    parser.add_argument(
+        "--candidates",
+        nargs="+",
+        type=Path,
+        default=None,
+        metavar="WEIGHTS_DIR",
+        help="only time one member of each of these trained ensembles (folders written by "
+        "mapex.training.train --out), e.g. network sizes being compared",
+    )
     args = parser.parse_args(argv)
     try:
         world = load_world(args.world)
@@ -350,6 +385,15 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     config = ExplorationConfig(steps=args.steps)
     print(f"map {world.name}: {world.shape[0]} x {world.shape[1]} cells; medians in ms", flush=True)
+    if args.candidates:
+        from mapex.prediction.weights import WeightsError  # torch only when asked
+
+        try:
+            bench_candidates(world, max(args.repeats // 10, 3), args.candidates)
+        except WeightsError as error:
+            print(f"mapex.bench: error: {error}", file=sys.stderr)
+            return EXIT_USAGE
+        return 0
     bench_scan(world, config, args.repeats)
     bench_scoring(world, config, args.repeats)
     bench_astar(world, config, max(args.repeats // 5, 3))

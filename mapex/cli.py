@@ -20,8 +20,14 @@ from mapex.config import (
 )
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
-from mapex.prediction import DEFAULT_PREDICTOR, PREDICTORS, make_predictor
-from mapex.prediction.config import DEFAULT_INFERENCE, add_inference_arguments, inference_from_args
+from mapex.prediction import (
+    ORACLE,
+    ORACLE_NOTICE,
+    add_predictor_argument,
+    inference_options,
+    make_predictor,
+)
+from mapex.prediction.config import add_inference_arguments, inference_from_args
 from mapex.prediction.weights import WeightsError
 from mapex.worlds import DEFAULT_WORLD, WorldError, load_world, start_label, world_spec_help
 from mapex.worlds.starts import add_start_argument
@@ -59,14 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="robots sharing one map (default 1); a team deploys about 1 m apart around the "
         "start (docs/algorithms.md#teams)",
     )
-    run.add_argument(
-        "--predictor",
-        default=DEFAULT_PREDICTOR,
-        choices=sorted(PREDICTORS),
-        help="map predictor ensemble: 'lama' (the learned LaMa-style ensemble shipped with the "
-        "package) or 'classical' (OpenCV inpainting); also used for the IoU/TU metrics; "
-        "default: %(default)s",
-    )
+    add_predictor_argument(run)
     add_inference_arguments(run)
     add_budget_arguments(run)
     add_start_argument(run, 0, "start pose (default 0)")
@@ -101,20 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def predictor_options(args: argparse.Namespace) -> dict:
-    """Keyword arguments of the chosen predictor from the flags (only 'lama' takes the
-    inference flags)."""
-    inference = inference_from_args(args)
-    if args.predictor == "lama":
-        return inference.ensemble_options()
-    given, default = inference.flags(), DEFAULT_INFERENCE.flags()
-    changed = [
-        f"{flag} {value}"
-        for flag, value, usual in zip(given[::2], given[1::2], default[1::2], strict=True)
-        if value != usual
-    ]
-    if changed:
-        raise ConfigError(f"{' '.join(changed)}: only the 'lama' predictor runs networks")
-    return {}
+    """Keyword arguments of the chosen predictor from the flags (only the learned ones take
+    the inference flags; ConfigError, one line, when another is given changed ones)."""
+    return inference_options(args.predictor, inference_from_args(args))
 
 
 def _open_recording(args: argparse.Namespace, world, method: str):
@@ -157,7 +145,9 @@ def run_command(args: argparse.Namespace) -> int:
     team_start_cells(world, [args.start], args.robots, config)  # a bad start: no work
     check_destination(args.out)
     recording = _open_recording(args, world, args.method)
-    predictor = make_predictor(args.predictor, **predictor_options(args))
+    predictor = make_predictor(args.predictor, world.occupancy, **predictor_options(args))
+    if args.predictor == ORACLE:
+        print(f"mapex: {ORACLE_NOTICE}", file=sys.stderr)
     with tqdm(
         total=config.steps,
         desc=f"{args.method} on {world.name}",

@@ -32,6 +32,7 @@ from mapex.io_limits import read_text
 from mapex.methods import records_team
 from mapex.metrics import idle_steps
 from mapex.plotting import plot_episode
+from mapex.prediction import DEFAULT_PREDICTOR
 from mapex.worlds.base import World
 from mapex.worlds.starts import StartSpec, start_label
 
@@ -89,20 +90,49 @@ def _not_a_file(path: Path) -> Path:
 
 def run_name(result: EpisodeResult) -> str:
     """A file-system-safe name for the run, e.g. `generated_0-mapex-start0-seed0`
-    (`...-seed0-team2` for a team of two)."""
-    return episode_name(result.world, result.method, result.start_spec, result.seed, result.robots)
+    (`...-seed0-team2` for a team of two, `generated_0-mapex@oracle-...` under the oracle)."""
+    return episode_name(
+        result.world, result.method, result.start_spec, result.seed, result.robots,
+        result.predictor,
+    )  # fmt: skip
 
 
-def episode_name(world: str, method: str, start: StartSpec, seed: int, robots: int = 1) -> str:
-    """The results-folder name of a run: `<world>-<method>-<start label>-seed<s>`, with the
-    world name made file-system safe (e.g. `50052748-mapex-start-r15c380-seed0`), and
+# what a run's record says of the default predictor: `lama`, or `zenoh` (the name the
+# distributed ensemble recorded before it named the predictor its workers serve)
+DEFAULT_PREDICTOR_RECORDS = (DEFAULT_PREDICTOR, "zenoh")
+
+
+def method_label(method: str, predictor: str | None) -> str:
+    """The method as results folders and the report name it: `mapex`, or `mapex@oracle` for
+    a run of another predictor than the default. A method that reads no prediction
+    (`observed_map`, ...) is labelled too: it explores the same under every predictor, but
+    its IoU and TU are G's map of what it saw, so they are the predictor's. A run of no
+    predictor or of the default (`DEFAULT_PREDICTOR_RECORDS`) is not labelled, so folders and
+    reports from before predictors were chosen keep their names."""
+    if predictor is None or predictor in DEFAULT_PREDICTOR_RECORDS:
+        return method
+    return f"{method}@{predictor}"
+
+
+def episode_name(
+    world: str,
+    method: str,
+    start: StartSpec,
+    seed: int,
+    robots: int = 1,
+    predictor: str | None = None,
+) -> str:
+    """The results-folder name of a run: `<world>-<method label>-<start label>-seed<s>`, with
+    the world name made file-system safe (e.g. `50052748-mapex-start-r15c380-seed0`), the
+    predictor in the label when it is not the default (`method_label`: `mapex@oracle`), and
     `-team<N>` for a team's record (`mapex.methods.records_team`)."""
-    name = folder_name(world, method, start_label(start), seed)
+    name = folder_name(world, method_label(method, predictor), start_label(start), seed)
     return f"{name}-team{robots}" if records_team(method, robots) else name
 
 
 def folder_name(world: str, method: str, start: str, seed: int) -> str:
-    """`episode_name` from a start label (`start2`, `start-r15c380`)."""
+    """`episode_name` from a method label (`mapex@oracle`) and a start label (`start2`,
+    `start-r15c380`)."""
     safe_world = world.replace(":", "_").replace("/", "_")
     return f"{safe_world}-{method}-{start}-seed{seed}"
 
@@ -213,7 +243,8 @@ def _write_run_files(result: EpisodeResult, world: World, staging: Path) -> None
     _write_snapshots(result, staging / SNAPSHOTS_FILE)
     plot_episode(
         staging / PICTURE_FILE,
-        f"{result.world} | {result.method} | {start_label(result.start_spec)} | seed {result.seed}",
+        f"{result.world} | {method_label(result.method, result.predictor)} | "
+        f"{start_label(result.start_spec)} | seed {result.seed}",
         result.final_observed,
         result.final_prediction,
         world.occupancy,

@@ -150,6 +150,10 @@ class FieldReader:
             return None
         return self.text(name)
 
+    def added_cell(self, name: str) -> tuple[int, int] | None:
+        """A (row, col) field added to v1 later: None when nil or absent (older senders)."""
+        return self.optional_cell(name) if name in self._fields else None
+
     def cell(self, name: str) -> tuple[int, int]:
         """A (row, col) field sent as a two-integer list."""
         value = self._take(name)

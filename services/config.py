@@ -78,6 +78,10 @@ class ServicesConfig(Checked):
     predict_retry_pause_s: float = positive(0.2)
     # planner's start-up discovery of live workers
     liveliness_query_timeout_s: float = positive(2.0)
+    # the oracle worker: how long it asks for a run's ground truth before refusing a request of
+    # that run, and how many runs' walls it keeps (a pool serves many runs at once)
+    oracle_truth_wait_s: float = positive(5.0)
+    oracle_runs_kept: int = ranged(8, 1)
     # torch CPU threads of one predictor worker (docs/design.md)
     predictor_threads: int = ranged(1, 1)
     # on shutdown, wait this long for the query being computed, then leave it (keep it well

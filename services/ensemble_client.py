@@ -9,6 +9,12 @@ that failed is benched for a time that doubles with each further failure, and on
 valid answer clears it, never its own health reply; each request carries its budget
 (docs/design.md#following-one-scan, docs/design.md#reliability). Its interface is that of
 every `Predictor`: `predict`, `predict_later`, `wait` and `close`.
+
+It asks for the predictor the run was started with (`lama` by default, `lama-v2`, or
+`oracle`): under the oracle it asks member g's oracle worker for the ground truth of the
+region, naming the run and the crop's origin, checks the answer cell by cell against the
+run's ground truth (which the planner holds for the metrics) and builds the
+`OraclePrediction` every member's rows come from (docs/design.md#the-oracle-worker).
 """
 
 from __future__ import annotations
@@ -23,7 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 import zenoh
 
-from mapex.grid import FREE, OCCUPIED, UNKNOWN, dequantise_probability
+from mapex.grid import FREE, OCCUPIED, UNKNOWN, Cell, dequantise_probability, quantise_probability
+from mapex.prediction import DEFAULT_PREDICTOR
 from mapex.prediction.base import (
     MEMBER_NAMES,
     EnsemblePrediction,
@@ -32,6 +39,7 @@ from mapex.prediction.base import (
     assemble_prediction,
 )
 from mapex.prediction.config import NetworkConfig
+from mapex.prediction.oracle import ORACLE, oracle_prediction
 from services.codec import DEFAULT_SERVICES, ProtocolError
 from services.config import ServicesConfig
 from services.keys import AliveKey, alive_predictor_pattern, health_key, parse_key, predict_key
@@ -68,6 +76,7 @@ class _Inflight:
     crop: np.ndarray  # the observed crop asked about (answers are checked against it)
     members: tuple[int, ...]
     pending: list[_Pending]
+    origin: Cell = (0, 0)  # the crop's top-left cell in the run's map
 
 
 @dataclass
@@ -91,13 +100,32 @@ class _Standing:
 
 
 class ZenohEnsemble(Predictor):
-    """The ensemble G, G_1..G_3 served by predictor workers reachable through `session`."""
+    """The ensemble G, G_1..G_3 of `predictor` served by predictor workers reachable through
+    `session`; its `name` is the predictor's, as a run records it. The oracle needs the `run`
+    (its workers read that run's ground truth) and the run's `walls` (its answers are checked
+    against them)."""
 
-    name = "zenoh"
     n_members = len(MEMBER_NAMES)
     context_cells = NetworkConfig().context_cells  # as the learned workers' own ensemble
 
-    def __init__(self, session: zenoh.Session, services: ServicesConfig = DEFAULT_SERVICES) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        services: ServicesConfig = DEFAULT_SERVICES,
+        predictor: str = DEFAULT_PREDICTOR,
+        run: str | None = None,
+        walls: np.ndarray | None = None,
+    ) -> None:
+        self.oracle = predictor == ORACLE
+        if self.oracle and (run is None or walls is None):
+            raise ValueError("the oracle ensemble needs its run and the run's walls")
+        self.name = predictor
+        self.run = run
+        self.walls = None if walls is None else np.asarray(walls, dtype=bool)
+        # the members whose workers it asks: the oracle's one worker answers for all
+        self.served_members = MEMBER_NAMES[:1] if self.oracle else MEMBER_NAMES
+        if self.oracle:
+            self.context_cells = 0  # the truth needs no map around the region
         self.session = session
         self.services = services
         self._lock = threading.Lock()
@@ -128,9 +156,11 @@ class ZenohEnsemble(Predictor):
         return {name: tuple(w for m, w in benched if m == name) for name in MEMBER_NAMES}
 
     def wait(
-        self, timeout_s: float = 10.0, members: Sequence[str] = MEMBER_NAMES, count: int = 1
+        self, timeout_s: float = 10.0, members: Sequence[str] | None = None, count: int = 1
     ) -> bool:
-        """Wait until each of `members` has at least `count` live workers; False on timeout."""
+        """Wait until each of `members` (default: those it asks, `served_members`) has at
+        least `count` live workers; False on timeout."""
+        members = self.served_members if members is None else members
         deadline = time.monotonic() + timeout_s
         while True:
             live = self.live_workers()
@@ -280,7 +310,10 @@ class ZenohEnsemble(Predictor):
 
     def predict_members(self, observed: np.ndarray, members: Sequence[int]) -> np.ndarray:
         """Every requested member's probabilities for the crop `observed`, float32
-        (len(members), h, w); RuntimeError naming the members that did not answer."""
+        (len(members), h, w); RuntimeError naming the members that did not answer (and under
+        the oracle, which must know where a crop lies: use `predict`)."""
+        if self.oracle:
+            raise RuntimeError("the oracle predicts a region of the run's map: use predict")
         answers = self._finish(self._start(observed, members))
         missing = answers.missing(members)
         if missing:
@@ -304,7 +337,8 @@ class ZenohEnsemble(Predictor):
         one timeout, docs/design.md#reliability). A reply is refused when it names another
         worker than the one asked or contradicts the known cells of the crop (`implausibility`);
         `workers` names the worker each answer was asked of. The main map is G's only if G
-        answered (`member_ids[0] == 0`).
+        answered (`member_ids[0] == 0`). Under the oracle the answer is an `OraclePrediction`
+        of every member asked, or, when its worker did not answer, one of no member.
         """
         return self.predict_later(observed, region, members)()
 
@@ -321,10 +355,14 @@ class ZenohEnsemble(Predictor):
         """
         members = tuple(range(self.n_members)) if members is None else tuple(members)
         r0, r1, c0, c1 = self.members_window(observed.shape, region)
-        inflight = self._start(observed[r0:r1, c0:c1], members)
+        asked = (0,) if self.oracle else members  # the oracle's worker serves g
+        inflight = self._start(observed[r0:r1, c0:c1], asked, (r0, c0))
 
         def result() -> EnsemblePrediction:
             answers = self._finish(inflight)
+            if self.oracle and answers.answered:
+                truth, worker = answers.probabilities[0], answers.workers[0]
+                return oracle_prediction(observed, truth, (r0, c0), region, members, worker)
             return assemble_prediction(
                 observed, region, answers.probabilities, answers.answered, self.context_cells,
                 answers.workers,
@@ -332,16 +370,21 @@ class ZenohEnsemble(Predictor):
 
         return result
 
-    def _start(self, crop: np.ndarray, members: Sequence[int]) -> _Inflight:
-        """Send one query per member (none for an empty crop)."""
+    def _start(self, crop: np.ndarray, members: Sequence[int], origin: Cell = (0, 0)) -> _Inflight:
+        """Send one query per member (none for an empty crop); `origin`: the crop's top-left
+        cell in the run's map (sent under the oracle)."""
         members = tuple(members)
         if crop.size == 0:  # nothing to predict (PredictRequest needs a non-empty map)
-            return _Inflight(-1, b"", crop, members, [])
+            return _Inflight(-1, b"", crop, members, [], origin)
         request_id = next(self._request_ids)
-        budget_s = self.services.predict_timeout_s
-        payload = PredictRequest(request_id, crop, budget_s).encode(self.services)
+        request = PredictRequest(
+            request_id, crop, self.services.predict_timeout_s,
+            self.run if self.oracle else None, origin if self.oracle else None,
+            None if self.name == DEFAULT_PREDICTOR else self.name,
+        )  # fmt: skip
+        payload = request.encode(self.services)
         sent = [p for p in (self._send(k, payload) for k in members) if p is not None]
-        return _Inflight(request_id, payload, crop.copy(), members, sent)
+        return _Inflight(request_id, payload, crop.copy(), members, sent, origin)
 
     def _finish(self, inflight: _Inflight) -> _Answers:
         """Collect the replies (re-sending unrouted queries) and assemble the answers."""
@@ -421,11 +464,24 @@ class ZenohEnsemble(Predictor):
                 return None, " ".join(payload.decode("utf-8", "replace").split())
             return None, str(error)
         problem = _reply_problem(message, inflight.request_id, member, worker_id, inflight.crop)
-        if problem is None:
+        if problem is None and self.oracle:
+            problem = self._untruth(inflight, message.probabilities_u8)
+        elif problem is None:
             problem = implausibility(inflight.crop, message.probabilities_u8, self.services)
             if problem is not None:
                 problem = f"implausible answer: {problem}"
         return (message, None) if problem is None else (None, problem)
+
+    def _untruth(self, inflight: _Inflight, quantised: np.ndarray) -> str | None:
+        """How an oracle answer for the crop of `inflight` differs from the run's ground
+        truth, or None when it is the truth exactly (the `implausibility` rules are not
+        applied: an honest crop whose unknown cells are all free is one value on them)."""
+        (top, left), (rows, cols) = inflight.origin, inflight.crop.shape
+        truth = quantise_probability(self.walls[top : top + rows, left : left + cols])
+        if truth.shape != quantised.shape:
+            return f"an oracle answer for a crop outside the {self.walls.shape} map"
+        wrong = int(np.count_nonzero(quantised != truth))
+        return None if wrong == 0 else f"wrong oracle answer: {wrong} cells are not the truth"
 
 
 def _timed_out(reply: zenoh.Reply) -> bool:

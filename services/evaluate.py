@@ -3,7 +3,7 @@
     python -m services.evaluate --maps DIR [DIR|generated:SEED ...] [--methods ...]
         [--ablations] [--starts 0,1,2,3 | --starts-file FILE] [--steps 1000] [--seeds 0]
         [--jobs 2] [--out results/evaluation] [--shard K/N] [--set SECTION.FIELD=VALUE ...]
-        [Zenoh flags]
+        [--predictor lama|lama-v2|oracle] [Zenoh flags]
 
 Runs every episode in a planner process of its own (`--jobs` at a time) on one shared
 predictor pool, keeps each finished episode in `<out>` so that the same command resumes,
@@ -47,6 +47,7 @@ from mapex.methods import (
     parse_method_list,
     records_team,
 )
+from mapex.prediction import DEFAULT_PREDICTOR, ORACLE, ORACLE_NOTICE
 from mapex.prediction.config import inference_from_args
 from mapex.report.runs import ReportError, load_run
 from mapex.results import (
@@ -56,6 +57,7 @@ from mapex.results import (
     claim_campaign,
     config_difference,
     episode_name,
+    method_label,
     move_into_place,
 )
 from mapex.shards import Shard, parse_shard, shard_items
@@ -77,6 +79,7 @@ from services.pool import (
     add_pool_arguments,
     check_hub_answers,
     hub_session_config,
+    resolve_pool_predictor,
     worker_specs,
 )
 from services.serving import configure_logging, exit_on_signals, stop_on_signals
@@ -102,10 +105,18 @@ class Episode:
     seed: int
     robots: int = 1  # a team method's team size
     steps: int = 1000  # the time budget T on this world (`--steps auto` differs per world)
+    predictor: str = DEFAULT_PREDICTOR
 
     @property
     def name(self) -> str:
-        return episode_name(self.world_name, self.method, self.start, self.seed, self.robots)
+        return episode_name(
+            self.world_name, self.method, self.start, self.seed, self.robots, self.predictor
+        )
+
+    @property
+    def label(self) -> str:
+        """The method as its folder and the report name it (`mapex@oracle`)."""
+        return method_label(self.method, self.predictor)
 
     @property
     def run_id(self) -> str:
@@ -122,12 +133,13 @@ def plan_episodes(
     world_config: WorldConfig = DEFAULT_WORLD_CONFIG,
     robots: int = 1,
     steps: Steps = 1000,
+    predictor: str = DEFAULT_PREDICTOR,
 ) -> list[Episode]:
     """Every combination, worlds outermost. `starts`: the corners for every map, or each
     map's own starts by map name (see `read_starts_file`). Loads each world once to name
     it and to check its size and every start on it (WorldError naming map and cell).
     `robots`: the team size of the team methods (single-robot methods run alone); `steps`:
-    the budget, or None for each world's `auto` budget."""
+    the budget, or None for each world's `auto` budget; `predictor`: every episode's."""
     episodes = []
     for spec in world_specs:
         world = load_world(spec, world_config.max_cells)
@@ -144,6 +156,7 @@ def plan_episodes(
                 seed,
                 robots if method in TEAM_METHODS else 1,
                 budget,
+                predictor,
             )  # fmt: skip
             for method, start, seed in itertools.product(methods, mine, seeds)
         ]
@@ -210,14 +223,15 @@ def finished(episode: Episode, out_dir: Path, config: dict | None = None) -> boo
 
 def run_problem(episode: Episode, folder: Path, config: dict | None = None) -> str | None:
     """Why a finished folder cannot count for `episode`, or None: its metrics and curves must
-    parse, name this world, method, start and seed, and (given `config`, the plain-data
+    parse, name this world, method (with its predictor, where the method reads one:
+    `mapex.results.method_label`), start and seed, and (given `config`, the plain-data
     configuration the episode would run with) agree with it on every field both have."""
     try:
         record = load_run(folder)
     except (ReportError, OSError, ValueError, KeyError, TypeError) as error:
         return f"unreadable ({' '.join(str(error).split())})"
-    wanted = (episode.world_name, episode.method, start_label(episode.start), episode.seed)
-    found = (record.world, record.metrics["method"], record.start, record.seed)
+    wanted = (episode.world_name, episode.label, start_label(episode.start), episode.seed)
+    found = (record.world, record.labelled_method, record.start, record.seed)
     if found != wanted:
         return f"it holds {'/'.join(map(str, found))}, not {'/'.join(map(str, wanted))}"
     if len(record.steps) == 0:
@@ -274,6 +288,8 @@ def planner_spec(
         "--out", str(planner_folder(episode, out_dir)), "--no-progress",
         "--robots", str(episode.robots),
     ]  # fmt: skip
+    if episode.predictor != DEFAULT_PREDICTOR:
+        planner_args += ["--predictor", episode.predictor]
     for item in settings:
         planner_args += ["--set", item]
     return ProcessSpec(f"episode-{episode.run_id}", "services.planner", (*planner_args, *flags))
@@ -363,6 +379,7 @@ def main(args: argparse.Namespace) -> int:
         args.starts if args.starts_file is None else read_starts_file(args.starts_file, max_bytes)
     )
     exploration.team.check_robots(args.robots)
+    resolve_pool_predictor(args)
     if args.robots > 1 and not any(method in TEAM_METHODS for method in methods):
         raise ConfigError(f"--robots {args.robots} needs a team method ({', '.join(TEAM_METHODS)})")
     bridges = len(bridge_spec(args, []))
@@ -372,8 +389,9 @@ def main(args: argparse.Namespace) -> int:
         f"workers" + (f" and {bridges} outside tools" if bridges else ""),
     )
     episodes = plan_episodes(
-        args.maps, methods, starts, args.seeds, exploration.world, args.robots, args.steps
-    )
+        args.maps, methods, starts, args.seeds, exploration.world, args.robots, args.steps,
+        args.predictor,
+    )  # fmt: skip
     check_output_folder(args.out)
     check_outside_tool_arguments(args)
     mine = episodes if shard is None else shard_items(episodes, shard, lambda e: e.method)
@@ -404,7 +422,10 @@ def main(args: argparse.Namespace) -> int:
         inference_from_args(args),
         id_prefix=f"ev{os.getpid()}" + ("" if shard is None else f"s{shard.index}"),
         settings=run_config.as_overrides(),
+        predictor=args.predictor,
     )
+    if args.predictor == ORACLE:
+        log.warning("%s", ORACLE_NOTICE)
     watch = PoolWatch(session, supervisor, workers, services)
     tools = None
     try:

@@ -355,12 +355,20 @@ class PredictRequest(Message):
     observed: uint8 (h, w) codes of `mapex.grid` (FREE, UNKNOWN, OCCUPIED).
     budget_s: how long the planner waits for the reply; a worker drops a request that
     waited longer than this in its queue (the planner has given up on it). None: no limit.
+    Added to v1 later, each sent only when set (so workers older than them still read the
+    requests of the default predictor): `run` and `origin`, the run whose map the crop is
+    cut from and the crop's top-left cell (row, col) in it, which the oracle worker needs
+    (it answers with that run's ground truth), given together; `predictor`, the predictor
+    the planner runs (None: the default, `lama`), which a worker serving another refuses.
     """
 
     TYPE: ClassVar[str] = "predict_request"
     request_id: int
     observed: np.ndarray
     budget_s: float | None = None
+    run: str | None = None
+    origin: Cell | None = None
+    predictor: str | None = None
 
     def __post_init__(self) -> None:
         _set(self, "request_id", _checked_count(self.TYPE, "request_id", self.request_id))
@@ -368,15 +376,29 @@ class PredictRequest(Message):
         _check_codes(self.TYPE, "observed", self.observed)
         if self.budget_s is not None:
             _set(self, "budget_s", _checked_number(self.TYPE, "budget_s", self.budget_s))
+        if (self.run is None) != (self.origin is None):
+            raise ProtocolError(f"{self.TYPE}: run and origin go together")
+        if self.run is not None and not is_valid_id(self.run):
+            raise ProtocolError(f"{self.TYPE}: run {self.run!r} is not a valid run id")
+        if self.origin is not None:
+            _set(self, "origin", _checked_cell(self.TYPE, "origin", self.origin))
+        if self.predictor is not None and not is_valid_id(self.predictor):
+            raise ProtocolError(f"{self.TYPE}: predictor {self.predictor!r} is not a valid name")
 
     def _fields(self, config: ServicesConfig) -> dict[str, Any]:
         observed = encode_array(self.observed, config)
-        return {"request_id": self.request_id, "observed": observed, "budget_s": self.budget_s}
+        fields = {"request_id": self.request_id, "observed": observed, "budget_s": self.budget_s}
+        if self.run is not None:
+            fields |= {"run": self.run, "origin": list(self.origin)}
+        return fields if self.predictor is None else {**fields, "predictor": self.predictor}
 
     @classmethod
     def _read(cls, reader: FieldReader) -> PredictRequest:
         request_id, observed = reader.integer("request_id"), reader.array("observed", "uint8", 2)
-        return cls(request_id, observed, reader.added_number("budget_s"))
+        return cls(
+            request_id, observed, reader.added_number("budget_s"), reader.added_text("run"),
+            reader.added_cell("origin"), reader.added_text("predictor"),
+        )  # fmt: skip
 
 
 @dataclass(frozen=True, eq=False)

@@ -6,9 +6,10 @@ the predictor workers as the ensemble (`services.ensemble_client`); members that
 answer in time are left out and the record says so (docs/design.md#reliability). After each
 step it publishes what it knows on `mapex/@v1/<run>/<robot>/...` (`services.publishing`)
 and at the end writes the results folder of `python -m mapex run`. With `--world` it
-simulates the world itself (batch evaluation runs so). A planner whose sensor or motion
-settings differ from its world's refuses to start. Bad flags: one line, exit 2; the world
-gone or refusing a step: one line, exit 1.
+simulates the world itself (batch evaluation runs so), and under `--predictor oracle` serves
+that world's ground truth for the oracle worker as a world process would. A planner whose
+sensor or motion settings differ from its world's refuses to start. Bad flags: one line,
+exit 2; the world gone or refusing a step: one line, exit 1.
 """
 
 from __future__ import annotations
@@ -29,7 +30,13 @@ from mapex.config import ConfigError, ExplorationConfig, argparse_type, parse_se
 from mapex.episode import EpisodeResult, run_episode
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
-from mapex.prediction.base import MEMBER_NAMES
+from mapex.prediction import (
+    DEFAULT_PREDICTOR,
+    ORACLE,
+    ORACLE_NOTICE,
+    add_predictor_argument,
+    served_predictor_problem,
+)
 from mapex.results import OutputError, check_destination, describe_end, destination, write_results
 from mapex.team.starts import team_start_cells
 from mapex.worlds import (
@@ -43,7 +50,8 @@ from mapex.worlds import (
 from mapex.worlds.starts import add_start_argument, start_cell, start_spec_of
 from services.config import RunConfig, ServicesConfig, add_run_config_argument
 from services.ensemble_client import ZenohEnsemble
-from services.keys import ID_MAX_CHARS, alive_planner_key, is_valid_id, robot_id
+from services.keys import ID_MAX_CHARS, alive_planner_key, is_valid_id, robot_id, run_key
+from services.messages import GroundTruth
 from services.publishing import RunPublisher
 from services.serving import configure_logging, run_token_from_env, supervisor_gone
 from services.world_client import (
@@ -89,10 +97,12 @@ def explore(
     progress: Progress | None = None,
     local: LocalWorld | None = None,
     start: StartSpec | None = None,
+    predictor: str = DEFAULT_PREDICTOR,
 ) -> tuple[EpisodeResult, World]:
-    """Run robot `robot`'s episode of `run` with the predictor processes, and the world
-    process (or the `local` world simulated here, every robot decided here). `start`, with a
-    world process: the start it must have placed the robot at (default: whichever it did)."""
+    """Run robot `robot`'s episode of `run` with the predictor processes of `predictor`, and
+    the world process (or the `local` world simulated here, every robot decided here).
+    `start`, with a world process: the start it must have placed the robot at (default:
+    whichever it did)."""
     exploration, services = run_config.exploration, run_config.services
     if local is None:
         source = ZenohWorld(session, run, robot, services, run_token_from_env())
@@ -110,9 +120,15 @@ def explore(
     ]
     publisher = publishers[0]
     tokens = [session.liveliness().declare_token(alive_planner_key(run, robot_id(k))) for k in here]
+    oracle = predictor == ORACLE
+    truth = serve_ground_truth(session, run, world) if oracle and local is not None else None
+    if oracle:
+        log.warning("%s", ORACLE_NOTICE)
+    walls = world.occupancy if oracle else None
     try:
-        with ZenohEnsemble(session, services) as ensemble:
-            publisher.status(0, "starting", f"waiting for members {', '.join(MEMBER_NAMES)}")
+        with ZenohEnsemble(session, services, predictor, run, walls) as ensemble:
+            members = ", ".join(ensemble.served_members)
+            publisher.status(0, "starting", f"waiting for members {members} ({predictor})")
             if not ensemble.wait(timeout_s=services.workers_wait_s):
                 log.warning("not every member has a live worker: the run starts degraded")
             publisher.status(0, "running", f"{method} on {world.name}")
@@ -139,7 +155,17 @@ def explore(
             each.close()
         for token in tokens:
             token.undeclare()
+        if truth is not None:
+            truth.undeclare()
     return result, world
+
+
+def serve_ground_truth(session: zenoh.Session, run: str, world: World) -> zenoh.Queryable:
+    """Answer `mapex/@v1/<run>/ground_truth` with `world`'s, as a world process does: the
+    oracle worker reads it there (docs/design.md#the-oracle-worker). Undeclare when done."""
+    payload = GroundTruth.from_world(world).encode()
+    key = run_key(run, "ground_truth")
+    return session.declare_queryable(key, lambda query: query.reply(query.key_expr, payload))
 
 
 def prediction_size_warning(shape: tuple[int, int], services: ServicesConfig) -> str | None:
@@ -219,13 +245,14 @@ def main(
     progress: Progress | None = None,
     local: LocalWorld | None = None,
     start: StartSpec | None = None,
+    predictor: str = DEFAULT_PREDICTOR,
 ) -> tuple[EpisodeResult, Path]:
     """Open a session, run the episode, write its results folder; return (result, folder)."""
     check_destination(out)
     session = open_session(config)
     try:
         result, world = explore(
-            session, run, robot, method, seed, run_config, progress, local, start
+            session, run, robot, method, seed, run_config, progress, local, start, predictor
         )
     finally:
         session.close()
@@ -247,6 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--run", required=True, help="run id, the <run> chunk of the keys")
     parser.add_argument("--robot", type=int, default=0, help="robot index in the run (default 0)")
     parser.add_argument("--method", default="mapex", choices=list(METHODS))
+    add_predictor_argument(parser, served=True)
     parser.add_argument(
         "--robots",
         type=int,
@@ -288,6 +316,8 @@ def run_cli(argv: list[str] | None = None) -> int:
         parser.error("--world needs --start")
     if args.robots > 1 and args.world is None:
         parser.error("--robots needs --world (a team is simulated here)")
+    if (problem := served_predictor_problem(args.predictor)) is not None:
+        parser.error(problem)
     local = None if args.world is None else LocalWorld(args.world, args.start, args.robots)
     configure_logging(f"planner[{args.run}/{robot_id(args.robot)}]")
     try:
@@ -303,6 +333,7 @@ def run_cli(argv: list[str] | None = None) -> int:
         result, out_dir = main(
             config, args.run, args.robot, args.method, args.seed, args.out, run_config,
             progress=lambda t: bar.update(t - bar.n), local=local, start=args.start,
+            predictor=args.predictor,
         )  # fmt: skip
     except (WorldError, OutputError) as error:
         log.error("%s", error)

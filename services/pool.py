@@ -16,8 +16,21 @@ from dataclasses import dataclass
 
 import zenoh
 
+from mapex.config import ConfigError
+from mapex.prediction import (
+    DEFAULT_PREDICTOR,
+    ORACLE,
+    add_predictor_argument,
+    inference_options,
+    served_predictor_problem,
+)
 from mapex.prediction.base import MEMBER_NAMES
-from mapex.prediction.config import DEFAULT_INFERENCE, InferenceConfig, add_inference_arguments
+from mapex.prediction.config import (
+    DEFAULT_INFERENCE,
+    InferenceConfig,
+    add_inference_arguments,
+    inference_from_args,
+)
 from services.codec import ProtocolError
 from services.config import ServicesConfig
 from services.keys import RobotKey, RobotTopic, parse_key, robot_key_pattern
@@ -40,18 +53,37 @@ def parse_member_list(text: str) -> tuple[str, ...]:
 
 
 def add_pool_arguments(parser: argparse.ArgumentParser) -> None:
-    """The predictor-pool flags of `services.up` and `services.evaluate`: which members to
-    spawn workers for, how many per member, their torch threads and how they run their
-    networks (precision, inference path, views)."""
+    """The predictor-pool flags of `services.up` and `services.evaluate`: which predictor,
+    which members to spawn workers for, how many per member, their torch threads and how
+    they run their networks (precision, inference path, views)."""
+    add_predictor_argument(parser, served=True)
     parser.add_argument(
         "--members",
         type=parse_member_list,
         default=MEMBER_NAMES,
-        help="members to spawn workers for, comma-separated, or 'none' (default: g,g1,g2,g3)",
+        help="members to spawn workers for, comma-separated, or 'none' (default: g,g1,g2,g3; "
+        "the oracle's one worker serves g)",
     )
     parser.add_argument("--replicas", type=int, default=1, help="workers per member (default 1)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads per worker")
     add_inference_arguments(parser)
+
+
+def resolve_pool_predictor(args: argparse.Namespace) -> None:
+    """Check the pool flags against `--predictor` (ConfigError, one line): one the workers
+    serve, network flags for a learned one only; under the oracle `args.members` becomes its
+    one member, g (from the default of all four; 'none' stays none)."""
+    if (problem := served_predictor_problem(args.predictor)) is not None:
+        raise ConfigError(problem)
+    inference_options(args.predictor, inference_from_args(args))
+    if args.predictor != ORACLE or args.members in ((), MEMBER_NAMES[:1]):
+        return
+    if args.members != MEMBER_NAMES:
+        raise ConfigError(
+            f"--predictor oracle is served by member {MEMBER_NAMES[0]} only: --members "
+            f"{MEMBER_NAMES[0]} or none"
+        )
+    args.members = MEMBER_NAMES[:1]
 
 
 @dataclass(frozen=True)
@@ -70,12 +102,16 @@ def worker_specs(
     inference: InferenceConfig = DEFAULT_INFERENCE,
     id_prefix: str = "pool",
     settings: Sequence[str] = (),
+    predictor: str = DEFAULT_PREDICTOR,
 ) -> list[WorkerSpec]:
     """`replicas` predictor workers per member, restarted when they die; worker ids
     `<id_prefix>-<member>-<replica>` (the supervisor probes their health under these).
-    `settings`: the run's `--set` items (`RunConfig.as_overrides`)."""
+    `settings`: the run's `--set` items (`RunConfig.as_overrides`); `predictor`: what they
+    serve (the oracle's worker gets no network flags)."""
     sets = [flag for item in settings for flag in ("--set", item)]
-    flags = ("--threads", str(threads), *inference.flags(), *sets, *zenoh_flags)
+    chosen = () if predictor == DEFAULT_PREDICTOR else ("--predictor", predictor)
+    network = () if predictor == ORACLE else ("--threads", str(threads), *inference.flags())
+    flags = (*chosen, *network, *sets, *zenoh_flags)
     specs = []
     for member in members:
         for replica in range(replicas):

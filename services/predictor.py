@@ -1,13 +1,15 @@
 """A predictor worker: serves prediction queries for one ensemble member over Zenoh.
 
-    python -m services.predictor --member g [--worker-id ID] [--weights-dir DIR]
-        [--device cpu|cuda] [--threads 1] [--precision float32|bfloat16]
-        [--inference fused|plain] [--views 1|2]
+    python -m services.predictor --member g [--predictor lama|lama-v2|oracle]
+        [--worker-id ID] [--weights-dir DIR] [--device cpu|cuda] [--threads 1]
+        [--precision float32|bfloat16] [--inference fused|plain] [--views 1|2]
         [--hang-after N] [--mode ...] [--connect ...] [--listen ...]
 
 It answers `predict` queries one at a time on a serving thread and health probes at once;
-replicas of a member share the load. Keys and replies: docs/protocol.md; threads, fault
-injection and exits: docs/design.md#processes; health and benching: docs/design.md#reliability.
+replicas of a member share the load. `--predictor oracle` (member g only) answers with the
+ground truth of the run a request names, read from its world, and loads no torch
+(services/oracle_worker.py). Keys and replies: docs/protocol.md; threads, fault injection
+and exits: docs/design.md#processes; health and benching: docs/design.md#reliability.
 """
 
 from __future__ import annotations
@@ -24,18 +26,27 @@ import time
 from pathlib import Path
 from typing import NoReturn
 
+import numpy as np
 import zenoh
 
 from mapex.config import ConfigError
 from mapex.exit_codes import EXIT_USAGE
-from mapex.prediction.base import Predictor
+from mapex.prediction import (
+    DEFAULT_PREDICTOR,
+    ORACLE,
+    ORACLE_NOTICE,
+    add_predictor_argument,
+    inference_options,
+    make_predictor,
+    served_predictor_problem,
+)
+from mapex.prediction.base import MEMBER_NAMES, Predictor
 from mapex.prediction.config import (
     DEFAULT_INFERENCE,
     InferenceConfig,
     add_inference_arguments,
     inference_from_args,
 )
-from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
 from services.codec import DEFAULT_SERVICES, Payload, ProtocolError, quantise_probability
 from services.config import RunConfig, ServicesConfig, add_run_config_argument
 from services.keys import (
@@ -47,6 +58,12 @@ from services.keys import (
     predict_key,
 )
 from services.messages import ErrorReply, HealthReply, PredictReply, PredictRequest
+from services.oracle_worker import (
+    GroundTruths,
+    OracleMember,
+    RequestRefusedError,
+    zenoh_truth_source,
+)
 from services.serving import (
     QueryServers,
     configure_logging,
@@ -70,6 +87,11 @@ log = logging.getLogger("services.predictor")
 class MemberServer:
     """Turns one request payload into the reply of one member; knows nothing of Zenoh.
 
+    `predictor` is a `Predictor` of crops (the learned ensemble's member) or the oracle's
+    member (`services.oracle_worker.OracleMember`, which reads where the crop lies); `serves`
+    names the predictor it is (`lama`, `lama-v2`, `oracle`): a request for another is refused,
+    so a planner never takes one predictor's answer for another's.
+
     The ensemble keeps its last answers by crop (`mapex.prediction.recent`): the planners of
     a team hold the same merged map, so at a step where several of them ask for the same
     crop (the metrics' whole-map prediction, above all) it is computed once; the network is
@@ -80,9 +102,15 @@ class MemberServer:
     """
 
     def __init__(
-        self, predictor: Predictor, member: str, worker_id: str, hang_after: int | None = None
+        self,
+        predictor: Predictor | OracleMember,
+        member: str,
+        worker_id: str,
+        hang_after: int | None = None,
+        serves: str = DEFAULT_PREDICTOR,
     ) -> None:
         self.predictor = predictor
+        self.serves = serves
         self.member = member
         self.worker_id = worker_id
         self.hang_after = hang_after
@@ -111,6 +139,10 @@ class MemberServer:
             return ErrorReply(
                 f"dropped: waited {waited_s:.1f} s, past the {request.budget_s} s budget"
             )
+        wanted = request.predictor or DEFAULT_PREDICTOR
+        if wanted != self.serves:
+            log.warning("refused request %d of predictor %s", request.request_id, wanted)
+            return ErrorReply(f"this worker serves predictor {self.serves}, not {wanted}")
         self._busy_since = time.monotonic()
         try:
             return self._predict(request)
@@ -129,17 +161,27 @@ class MemberServer:
             threading.Event().wait()  # for ever, as a deadlocked worker would
         started = time.perf_counter()
         try:
-            probabilities = self.predictor.predict_members(request.observed, (0,))[0]
+            probabilities = self._probabilities(request)
             quantised = quantise_probability(probabilities)
             compute_ms = (time.perf_counter() - started) * 1e3
             reply = PredictReply(
                 request.request_id, self.member, quantised, self.worker_id, compute_ms
             )
+        except RequestRefusedError as error:
+            log.warning("refused request %d: %s", request.request_id, error)
+            return ErrorReply(f"refused: {error}")
         except Exception as error:  # a failed prediction must not take the worker down
             log.exception("prediction of request %d failed", request.request_id)
             return ErrorReply(f"prediction failed: {type(error).__name__}: {error}")
         self.answered += 1
         return reply
+
+    def _probabilities(self, request: PredictRequest) -> np.ndarray:
+        """The member's probabilities for the request's crop: a predictor of crops reads the
+        crop alone, the oracle also where in which run it lies."""
+        if isinstance(self.predictor, OracleMember):
+            return self.predictor.predict_request(request)
+        return self.predictor.predict_members(request.observed, (0,))[0]
 
 
 def serve(
@@ -176,38 +218,60 @@ def main(
     config: zenoh.Config,
     member: str,
     worker_id: str,
-    weights_dir: Path = WEIGHTS_DIR,
+    weights_dir: Path | None = None,
     device: str = "cpu",
     threads: int = DEFAULT_SERVICES.predictor_threads,
     stop: threading.Event | None = None,
     services: ServicesConfig = DEFAULT_SERVICES,
     inference: InferenceConfig = DEFAULT_INFERENCE,
     hang_after: int | None = None,
+    predictor: str = DEFAULT_PREDICTOR,
 ) -> int:
-    """Load `member`'s weights, then serve it until `stop` is set; return the queries answered.
+    """Load `member` of `predictor` (its weights, from `weights_dir` or the predictor's own
+    folder), then serve it until `stop` is set; return the queries answered. The oracle
+    loads nothing: it reads each run's ground truth when first asked.
 
-    Raises WeightsError (missing or broken weights) or ZenohConfigError (session refused).
-    The weights load before the session opens, so a bad file costs no network set-up.
+    Raises ConfigError (missing or broken weights, settings of a network the predictor does
+    not run) or ZenohConfigError (session refused). The weights load before the session
+    opens, so a bad file costs no network set-up.
     """
-    from mapex.prediction.learned import LearnedEnsemble  # torch only once the flags are valid
-
     return_freed_memory()
-
-    predictor = LearnedEnsemble(
-        Path(weights_dir),
-        device,
-        threads,
-        members=(member,),
-        **inference.ensemble_options(),
-    )
+    model: Predictor | OracleMember | None = None  # the oracle's needs the session
+    if predictor != ORACLE:
+        model = _learned_member(predictor, member, weights_dir, device, threads, inference)
     if stop is not None and stop.is_set():  # stopped while loading: never serve
         return 0
     session = open_session(config)
     try:
-        server = MemberServer(predictor, member, worker_id, hang_after)
+        if model is None:
+            log.info("%s", ORACLE_NOTICE)
+            truths = GroundTruths(zenoh_truth_source(session, services), services.oracle_runs_kept)
+            model = OracleMember(truths)
+        server = MemberServer(model, member, worker_id, hang_after, serves=predictor)
         return serve(session, server, stop or threading.Event(), services)
     finally:
         session.close()
+
+
+def _learned_member(
+    predictor: str,
+    member: str,
+    weights_dir: Path | None,
+    device: str,
+    threads: int,
+    inference: InferenceConfig,
+) -> Predictor:
+    """`member` of the learned `predictor`, loaded (torch is imported here, so the oracle
+    worker never loads it); a missing or broken weights file is a ConfigError (one line)."""
+    from mapex.prediction.weights import WeightsError
+
+    options = {"members": (member,), **inference_options(predictor, inference)}
+    if weights_dir is not None:
+        options["weights_dir"] = Path(weights_dir)
+    try:
+        return make_predictor(predictor, device=device, threads=threads, **options)
+    except WeightsError as error:
+        raise ConfigError(str(error)) from None
 
 
 def default_worker_id() -> str:
@@ -223,8 +287,15 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m services.predictor", description=__doc__.splitlines()[0]
     )
     parser.add_argument("--member", required=True, choices=MEMBERS, help="ensemble member")
+    add_predictor_argument(parser, served=True)
     parser.add_argument("--worker-id", default=None, help="unique id (default: <host>-<pid>)")
-    parser.add_argument("--weights-dir", type=Path, default=WEIGHTS_DIR, help="<member>.pt here")
+    parser.add_argument(
+        "--weights-dir",
+        type=Path,
+        default=None,
+        help="<member>.pt here (default: the predictor's folder, mapex/prediction/weights/ for "
+        "lama, its v2/ for lama-v2)",
+    )
     parser.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N")
     parser.add_argument(
         "--threads",
@@ -271,8 +342,9 @@ def run_cli(argv: list[str] | None = None) -> int:
             services,
             inference=inference_from_args(args),
             hang_after=args.hang_after,
+            predictor=args.predictor,
         )
-    except (WeightsError, ConfigError, ZenohConfigError) as error:
+    except (ConfigError, ZenohConfigError) as error:
         log.error("%s", error)
         return EXIT_USAGE
     log.info("stopped after answering %d queries", answered)
@@ -304,8 +376,25 @@ def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace, work
         parser.error(f"--threads must be at least 1, got {args.threads}")
     if args.hang_after is not None and args.hang_after < 0:
         parser.error(f"--hang-after must be at least 0, got {args.hang_after}")
+    if (problem := served_predictor_problem(args.predictor)) is not None:
+        parser.error(problem)
+    if args.predictor == ORACLE:
+        _check_oracle_flags(parser, args)
+        return
     if args.device.startswith("cuda") and not _cuda_available():
         parser.error(f"--device {args.device}: no CUDA device is available")
+
+
+def _check_oracle_flags(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """The oracle serves member g and runs no network: no weights, device or network flags."""
+    if args.member != MEMBER_NAMES[0]:
+        parser.error(f"--predictor oracle is served by member {MEMBER_NAMES[0]} only")
+    if args.weights_dir is not None or args.device != "cpu":
+        parser.error("--predictor oracle reads the ground truth: no --weights-dir or --device")
+    try:
+        inference_options(ORACLE, inference_from_args(args))
+    except ConfigError as error:
+        parser.error(str(error))
 
 
 def _cuda_available() -> bool:

@@ -3,10 +3,12 @@
 With no arguments it serves the Zenoh hub on tcp/127.0.0.1:7447, spawns the world (the
 embedded default world), one predictor worker per ensemble member and the planner, runs a
 1000-step MapEx episode with a progress bar and writes the results folder of `python -m
-mapex run`. It forwards the children's logs, restarts a dead or stuck worker, ends the run
-with the child's own line when a world exits or a child fails to start, and stops
-everything on Ctrl-C. The run's settings (defaults and `--set`) are built once and handed
-to every child. Flags: `--help`; deployment on several machines: deploy/README.md.
+mapex run`; `--predictor oracle` spawns one oracle worker (member g, the ground truth as
+the prediction: an upper bound) instead. It forwards the children's logs, restarts a dead
+or stuck worker, ends the run with the child's own line when a world exits or a child fails
+to start, and stops everything on Ctrl-C. The run's settings (defaults and `--set`) are
+built once and handed to every child. Flags: `--help`; deployment on several machines:
+deploy/README.md.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from mapex.budget import add_budget_arguments, resolve_steps
 from mapex.config import MAX_SEED, ConfigError, ExplorationConfig, argparse_type, parse_seed
 from mapex.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from mapex.methods import METHODS
+from mapex.prediction import DEFAULT_PREDICTOR, ORACLE, ORACLE_NOTICE
 from mapex.prediction.config import inference_from_args
 from mapex.results import DEFAULT_RESULTS_DIR, check_output_folder
 from mapex.team.starts import team_start_cells
@@ -56,6 +59,7 @@ from services.pool import (
     add_pool_arguments,
     check_hub_answers,
     hub_session_config,
+    resolve_pool_predictor,
     worker_specs,
 )
 from services.serving import RUN_TOKEN_ENV, configure_logging, exit_on_signals, stop_on_signals
@@ -109,8 +113,9 @@ def child_specs(
     sets = [flag for item in settings for flag in ("--set", item)]
     workers = worker_specs(
         args.members, args.replicas, args.threads, zenoh_flags, inference_from_args(args),
-        id_prefix=f"up{os.getpid()}", settings=settings,
+        id_prefix=f"up{os.getpid()}", settings=settings, predictor=args.predictor,
     )  # fmt: skip
+    chosen = [] if args.predictor == DEFAULT_PREDICTOR else ["--predictor", args.predictor]
     worlds, planners = [], []
     for run in runs:
         starts = [start_argument(start) for start in run.starts]
@@ -124,7 +129,7 @@ def child_specs(
             planner_args = [
                 "--run", run.run_id, "--robot", str(robot), "--method", args.method,
                 "--steps", str(run_config.exploration.steps), "--seed", str(run.seed),
-                "--no-progress", "--start", starts[robot], *sets,
+                "--no-progress", "--start", starts[robot], *chosen, *sets,
             ]  # fmt: skip
             if args.out is not None:
                 planner_args += ["--out", str(args.out / f"{run.run_id}-{robot_id(robot)}")]
@@ -194,6 +199,7 @@ def main(args: argparse.Namespace) -> int:
     run_config = RunConfig(ExplorationConfig(until_iou=args.until_iou))
     run_config = run_config.with_overrides(args.overrides)
     exploration, services = run_config.exploration, run_config.services
+    resolve_pool_predictor(args)
     check_process_caps(args, run_config)
     world = load_world(args.world, exploration.world.max_cells)
     args.steps = resolve_steps(args.steps, world)
@@ -206,6 +212,8 @@ def main(args: argparse.Namespace) -> int:
     own_config, zenoh_flags = hub_session_config(args, services)
     specs = child_specs(args, runs, zenoh_flags, run_config)
     specs["tools"] = bridge_spec(args, zenoh_flags)
+    if args.predictor == ORACLE:
+        log.warning("%s", ORACLE_NOTICE)
     stop = stop_on_signals()
     session = open_session(own_config)
     progress = RunProgress(session, "pose", PoseMessage)

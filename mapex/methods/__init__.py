@@ -53,6 +53,9 @@ ABLATIONS = ("deterministic", "no_variance", "observed_map", "no_visibility")
 BEYOND_PAPER = ("mapex_path", "mapex_plus", "mapex_plus_observed")  # ours (docs/algorithms.md)
 FOLLOW_UP = ("pipe", "pw_nbv")  # the authors' IROS 2025 follow-up (docs/algorithms.md#pipe)
 TEAM_METHODS = tuple(name for name, cls in METHODS.items() if cls.made_for_teams)
+# Each method that reads the prediction, and its twin that does not: the same choice rule on
+# the observed map alone, so the pair's difference is what the prediction buys the rule.
+PREDICTION_TWINS = {"mapex": "observed_map", "pipe": "pw_nbv", "mapex_plus": "mapex_plus_observed"}
 
 
 def parse_method_list(text: str, known: Collection[str] = METHODS) -> list[str]:
@@ -86,6 +89,7 @@ __all__ = [
     "FOLLOW_UP",
     "MAIN_COMPARISON",
     "METHODS",
+    "PREDICTION_TWINS",
     "TEAM_METHODS",
     "FrontierScorer",
     "Method",

@@ -34,7 +34,7 @@ class NetworkConfig(Checked):
     average_turned_view: bool = True
 
 
-MemberSplit = Literal["thirds", "by_source"]
+MemberSplit = Literal["thirds", "by_source", "bagged"]
 
 
 @dataclass(frozen=True)
@@ -42,23 +42,26 @@ class PredictorTrainingConfig(Checked):
     """Data and schedule of `python -m mapex.training.train` (docs/prediction.md#training).
 
     Sources (mapex.worlds.data.SOURCES): "houseexpo" (houses along a corridor), "ipa" (IPA
-    training maps), "kth" (the two KTH training floors), "procedural" (our plans)."""
+    training maps), "kth" (the two KTH training floors of kth_dev and, with `kth_sdf`, the
+    trainable floors of kth_sdf/train), "procedural" (our plans)."""
 
     procedural_worlds: int = ranged(32, 0)  # generated-open:<first_procedural_seed + i>
     first_procedural_seed: int = ranged(1000, 0, MAX_SEED)
     houseexpo_worlds: int = ranged(48, 0)  # houseexpo-corridor:<first_houseexpo_seed + i>
     first_houseexpo_seed: int = ranged(0, 0, MAX_SEED)
     use_ipa: bool = True  # explore the IPA maps `ipa_maps` (in --ipa-dir)
+    # explore the kth_sdf/train floors (in --kth-sdf-dir) but the held-out and flagged ones
+    kth_sdf: bool = True
     ipa_maps: tuple[str, ...] = IPA_TRAINING_MAPS
     snapshot_methods: tuple[str, ...] = ("nearest", "observed_map")
     starts_per_world: int = ranged(2, 1)  # procedural plans and HouseExpo worlds
     ipa_starts_per_world: int = ranged(2, 1)
-    kth_starts_per_world: int = ranged(4, 1)
+    kth_starts_per_world: int = ranged(2, 1)
     # Share of G's pretraining crops per source (renormalised over the sources present);
     # a member's crops keep these proportions within its own sources.
-    houseexpo_share: float = ranged(0.35, 0)
-    ipa_share: float = ranged(0.3, 0)
-    kth_share: float = ranged(0.2, 0)
+    houseexpo_share: float = ranged(0.1, 0)
+    ipa_share: float = ranged(0.25, 0)
+    kth_share: float = ranged(0.5, 0)
     procedural_share: float = ranged(0.15, 0)
     snapshot_steps: int = ranged(1000, 1)
     snapshot_every_steps: int = ranged(50, 1)
@@ -66,12 +69,16 @@ class PredictorTrainingConfig(Checked):
     frontier_share: float = share(0.75)  # crops centred near a frontier, the rest anywhere
     edge_overhang_cells: int = ranged(64, 0)  # how far a crop may hang over the map's border
     batch_size: int = ranged(8, 1)
-    main_steps: int = ranged(8000, 0)  # G's pretraining, on every source
-    member_steps: int = ranged(1500, 0)  # G_1..G_3, each fine-tuning G's pretrained weights
-    members_from_main: bool = True  # G_1..G_3 fine-tune G (the paper's fine-tune one LaMa)
-    # G_k's data: "by_source" = the k-th entry of member_sources ("+" joins sources);
-    # "thirds" = the worlds whose index is k - 1 modulo 3.
-    member_split: MemberSplit = "by_source"
+    main_steps: int = ranged(10000, 0)  # G's pretraining, on every source
+    member_steps: int = ranged(4000, 0)  # G_1..G_3 each
+    # G_1..G_3 fine-tune G's pretrained weights (v2; the paper fine-tunes one LaMa) or, when
+    # False, start from their own random weights (v3: independent networks disagree more)
+    members_from_main: bool = False
+    # G_k's data: "bagged" = a seeded random `bag_share` of the worlds of every source (its
+    # own draw per member); "by_source" = the k-th entry of member_sources ("+" joins
+    # sources); "thirds" = the worlds whose index is k - 1 modulo 3.
+    member_split: MemberSplit = "bagged"
+    bag_share: float = ranged(0.67, 0, 1, low_open=True)
     member_sources: tuple[str, ...] = ("houseexpo", "ipa", "kth+procedural")
     # Procedural plans with free space outside the building (generated-open:SEED), as in
     # the KTH maps, instead of solid wall.

@@ -1,8 +1,10 @@
 """The learned ensemble: G and G_1..G_3, LaMa-style generators trained by this project.
 
-The weights ship in `mapex/prediction/weights/` (made by `python -m mapex.training.train`);
-they load on CPU with no GPU present and use a GPU when asked. A member's stored logit bias
-(G's calibrated decision threshold, 0 for G_1..G_3) is added to its output. Torch runs with
+The weights ship in `mapex/prediction/weights/` (made by `python -m mapex.training.train`;
+`--predictor lama`), and the v2 ensemble stays in `weights/v2/` (`--predictor lama-v2`,
+`LearnedEnsembleV2`) whatever the default folder holds; they load on CPU with no GPU
+present and use a GPU when asked. A member's stored logit bias (G's calibrated decision
+threshold, 0 for G_1..G_3) is added to its output. Torch runs with
 `threads` CPU threads (all cores when alone on the machine, one per worker when several
 share it); an `InferenceConfig` says how the networks run (docs/benchmarks.md#the-predictor).
 The last few answers are kept by crop digest, so the same crop asked twice (G's metric
@@ -31,10 +33,11 @@ class LearnedEnsemble(Predictor):
 
     name = "lama"
     context_cells = NetworkConfig().context_cells
+    default_weights_dir = WEIGHTS_DIR  # where `<member>.pt` are read without a weights_dir
 
     def __init__(
         self,
-        weights_dir: Path = WEIGHTS_DIR,
+        weights_dir: Path | None = None,
         device: str = "cpu",
         threads: int | None = None,
         members: Sequence[str] = MEMBER_NAMES,
@@ -47,9 +50,8 @@ class LearnedEnsemble(Predictor):
         if threads is not None:
             torch.set_num_threads(threads)
         self.device = torch.device(device)
-        loaded = [
-            load_member_with_bias(Path(weights_dir) / f"{name}.pt", self.device) for name in members
-        ]
+        folder = Path(self.default_weights_dir if weights_dir is None else weights_dir)
+        loaded = [load_member_with_bias(folder / f"{name}.pt", self.device) for name in members]
         self.models = [self._runnable(model) for model, _ in loaded]
         self.logit_biases = [bias for _, bias in loaded]
         self.n_members = len(self.models)
@@ -88,6 +90,14 @@ class LearnedEnsemble(Predictor):
         with torch.inference_mode(), autocast(self.device, self.inference.precision):
             logits = self.models[member].predict_logits(inputs)[0, 0].float()
             return torch.sigmoid(logits + self.logit_biases[member]).cpu().numpy()
+
+
+class LearnedEnsembleV2(LearnedEnsemble):
+    """The v2 ensemble (the README's and docs/results' figures), read from `weights/v2/`, so
+    that it can be chosen by name once the default folder holds newer weights."""
+
+    name = "lama-v2"
+    default_weights_dir = WEIGHTS_DIR / "v2"
 
 
 def _with_views(config: NetworkConfig, views: int) -> NetworkConfig:

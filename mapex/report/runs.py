@@ -29,6 +29,7 @@ from mapex.results import (
     config_difference,
     folder_name,
     level_key,
+    method_label,
     read_campaign,
 )
 from mapex.worlds.starts import start_label
@@ -65,11 +66,21 @@ class RunRecord:
 
     @property
     def method(self) -> str:
-        """The method as the report groups runs: a team's size is part of it
-        (`mapex_team x2`), so teams of 2 and of 4 are compared, not pooled."""
+        """The method as the report groups runs: its predictor when not the default
+        (`mapex@oracle`, `mapex.results.method_label`) and a team's size (`mapex_team x2`)
+        are part of it, so runs of two predictors, or teams of 2 and of 4, are compared,
+        not pooled."""
         team = self.metrics.get("team")
-        name = str(self.metrics["method"])
+        name = self.labelled_method
         return f"{name} x{team['robots']}" if team else name
+
+    @property
+    def labelled_method(self) -> str:
+        """The method with its predictor, as in the run's folder name (`mapex@oracle`)."""
+        predictor = self.metrics.get("predictor")
+        return method_label(
+            str(self.metrics["method"]), None if predictor is None else str(predictor)
+        )
 
     @property
     def world(self) -> str:
@@ -211,7 +222,8 @@ def missing_runs(runs: Iterable[RunRecord]) -> list[str]:
 
 def _run_folder(world: str, method: str, start: str, seed: int) -> str:
     """The folder of a run of `method` as the report labels it: a team (`mapex_team x2`)
-    is `<world>-mapex_team-<start>-seed<s>-team2`, as `mapex.results.episode_name` writes."""
+    is `<world>-mapex_team-<start>-seed<s>-team2` and a run of the oracle (`mapex@oracle`)
+    `<world>-mapex@oracle-<start>-seed<s>`, as `mapex.results.episode_name` writes."""
     name, _, robots = method.partition(" x")
     folder = folder_name(world, name, start, seed)
     return f"{folder}-team{robots}" if robots else folder

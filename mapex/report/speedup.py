@@ -109,9 +109,10 @@ def _divide(a: float, b: float) -> float:
 
 
 def group_of(run: RunRecord) -> Group:
-    """(method, robots): a single robot's run is a team of one."""
+    """(method, robots): a single robot's run is a team of one; the method with its
+    predictor when not the default (`mapex@oracle`)."""
     team = run.metrics.get("team") or {}
-    return str(run.metrics["method"]), int(team.get("robots", 1))
+    return run.labelled_method, int(team.get("robots", 1))
 
 
 def episode_of(run: RunRecord) -> Episode:

@@ -8,11 +8,15 @@ the time, with flips and 90-degree rotations.
 
 from __future__ import annotations
 
+import json
 import multiprocessing
 import os
+import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from mapex.config import ExplorationConfig, MetricsConfig
 from mapex.explorer import Explorer
@@ -24,8 +28,9 @@ from mapex.prediction.config import PredictorTrainingConfig
 from mapex.prediction.network import OUTSIDE_MAP
 from mapex.simulator import Simulator
 from mapex.worlds import World, generated_prefix, load_world, start_poses
-from mapex.worlds.base import CORRIDOR_PREFIX
+from mapex.worlds.base import CORRIDOR_PREFIX, KTH_SDF_PREFIX
 from mapex.worlds.data import SOURCES, never_train_on, world_source
+from mapex.worlds.gazebo import SUFFIXES as GAZEBO_SUFFIXES
 
 
 @dataclass
@@ -60,7 +65,13 @@ def training_world_specs(
 
 
 def spec_name(spec: str) -> str:
-    """The name a world spec's world will have (a map directory's own name)."""
+    """The name a world spec's world will have (a map directory's or an SDF file's own
+    name, a kth_sdf floor's id)."""
+    if spec.startswith(KTH_SDF_PREFIX):
+        return spec[len(KTH_SDF_PREFIX) :]
+    path = spec.partition("@")[0]
+    if path.lower().endswith(GAZEBO_SUFFIXES):
+        return Path(path).stem
     return os.path.basename(os.path.normpath(spec))
 
 
@@ -126,13 +137,61 @@ def collect_snapshots(
     gather the snapshots, in the order of `specs` whatever the number of processes."""
     context = multiprocessing.get_context("spawn")
     with context.Pool(processes or os.cpu_count()) as pool:
-        per_world = pool.starmap(explore_snapshots, [(spec, config) for spec in specs])
+        jobs = pool.imap(_explore, [(spec, config) for spec in specs])
+        per_world = list(tqdm(jobs, total=len(specs), desc="snapshots", unit="world"))
     worlds = [load_world(spec) for spec in specs]
+    return _snapshot_set(worlds, per_world)
+
+
+def _explore(job: tuple[str, PredictorTrainingConfig]) -> list[np.ndarray]:
+    return explore_snapshots(*job)
+
+
+def _snapshot_set(worlds: list[World], per_world: list[list[np.ndarray]]) -> SnapshotSet:
     observed = [snapshot for snapshots in per_world for snapshot in snapshots]
     world_of = np.concatenate(
         [np.full(len(snapshots), i, dtype=np.int64) for i, snapshots in enumerate(per_world)]
     )
     return SnapshotSet(worlds, observed, world_of)
+
+
+def snapshot_key(specs: list[str], config: PredictorTrainingConfig) -> str:
+    """What a set of snapshots depends on: the worlds and the exploration settings."""
+    fields = ("snapshot_methods", "starts_per_world", "ipa_starts_per_world",
+              "kth_starts_per_world", "snapshot_steps", "snapshot_every_steps")  # fmt: skip
+    settings = {name: getattr(config, name) for name in fields}
+    return json.dumps({"specs": specs, "settings": settings}, sort_keys=True, default=list)
+
+
+def cached_snapshots(
+    path: Path | None, specs: list[str], config: PredictorTrainingConfig
+) -> SnapshotSet:
+    """The snapshots of `specs`: read from the file at `path` when it holds exactly those,
+    else collected (and written there, when a path is given)."""
+    key = snapshot_key(specs, config)
+    if path is not None and path.is_file():
+        with np.load(path) as stored:
+            if str(stored["key"]) == key:
+                print(f"snapshots read from {path}", file=sys.stderr)
+                flat, shapes, counts = stored["maps"], stored["shapes"], stored["counts"]
+                ends = np.cumsum([rows * cols for rows, cols in shapes])
+                maps = [
+                    m.reshape(s) for m, s in zip(np.split(flat, ends[:-1]), shapes, strict=True)
+                ]
+                per_world = np.split(np.arange(len(maps)), np.cumsum(counts)[:-1])
+                worlds = [load_world(spec) for spec in specs]
+                return _snapshot_set(worlds, [[maps[i] for i in idx] for idx in per_world])
+            print(f"{path} holds other snapshots: collecting again", file=sys.stderr)
+    snapshots = collect_snapshots(specs, config)
+    if path is not None:
+        counts = np.bincount(snapshots.world_of, minlength=len(specs))
+        shapes = np.array([m.shape for m in snapshots.observed], dtype=np.int64)
+        flat = np.concatenate([m.ravel() for m in snapshots.observed])
+        path.parent.mkdir(parents=True, exist_ok=True)
+        staging = path.with_name(path.name + ".tmp.npz")
+        np.savez_compressed(staging, key=key, maps=flat, shapes=shapes, counts=counts)
+        staging.replace(path)
+    return snapshots
 
 
 class CropSampler:

@@ -1,9 +1,11 @@
 """`python -m mapex.training.evaluate`: how good are the predictions, on their own?
 
-On the six validation maps (2 KTH floors, 4 IPA buildings; never trained on), observed maps
-are taken from nearest-frontier runs at t = 100, 300, 600 from all 4 starts, and the
+On validation worlds never trained on (the six validation maps, 2 KTH floors and 4 IPA
+buildings, or with `--kth` the 18 KTH validation floors: the two official ones and the 16
+held-out kth_sdf floors), observed maps are taken from nearest-frontier runs at t = 100,
+300, 600 from all 4 starts, and the
 occupied-class IoU over the *unknown* cells inside the building footprint is measured for
-G, a reference G (by default the previously shipped v1 weights), the classical predictor
+G, a reference G (by default the v2 weights), the classical predictor
 and "unknown = free"; the ensemble variance is scored as a detector of G's wrong cells
 (AUROC). Four tables: per map, per map and time, near / far from the known map, and
 against a local predictor's ceiling; what they say is in docs/prediction.md.
@@ -40,9 +42,9 @@ from mapex.prediction.weights import WEIGHTS_DIR, WeightsError
 from mapex.training.dataset import snapshots_at
 from mapex.worlds import WorldError, load_world, start_poses
 from mapex.worlds.base import World
-from mapex.worlds.data import validation_map_dirs
+from mapex.worlds.data import kth_validation_specs, validation_map_dirs
 
-REFERENCE_WEIGHTS_DIR = WEIGHTS_DIR / "v1"  # the ensemble shipped before predictor v2
+REFERENCE_WEIGHTS_DIR = WEIGHTS_DIR / "v2"  # the ensemble shipped before predictor v3
 
 
 @dataclass
@@ -135,7 +137,7 @@ def outside_building(world: World) -> np.ndarray:
 
 
 def evaluate(
-    map_dirs: list[Path],
+    map_specs: list[str],
     settings: PredictorEvaluationConfig,
     figure: Path | None,
     weights_dir: Path = WEIGHTS_DIR,
@@ -155,12 +157,12 @@ def evaluate(
     config = ExplorationConfig()
     threshold = config.metrics.prediction_threshold
     times = settings.snapshot_times
-    drawn = (map_dirs[-1], 0, times[len(times) // 2])  # which snapshot the figure shows
-    worlds = {map_dir: load_world(str(map_dir)) for map_dir in map_dirs}  # fail before any work
+    drawn = (map_specs[-1], 0, times[len(times) // 2])  # which snapshot the figure shows
+    worlds = {spec: load_world(spec) for spec in map_specs}  # fail before any work
     scores = []
-    jobs = [(d, s) for d in map_dirs for s in range(4)]
-    for map_dir, start_index in tqdm(jobs, desc="exploring", unit="run"):
-        world = worlds[map_dir]
+    jobs = [(spec, s) for spec in map_specs for s in range(4)]
+    for map_spec, start_index in tqdm(jobs, desc="exploring", unit="run"):
+        world = worlds[map_spec]
         footprint = building_footprint(world.valid_space, config.metrics.footprint_margin_cells)
         start = start_poses(world, config.world.start_clearance_cells)[start_index]
         snapshots, _ = snapshots_at(world, "nearest", start, list(times))
@@ -185,7 +187,7 @@ def evaluate(
             scores.append(
                 SnapshotScore(world.name, start_index, t, *values, ceiling, inside_only, far_share)
             )
-            if figure is not None and (map_dir, start_index, t) == drawn:
+            if figure is not None and (map_spec, start_index, t) == drawn:
                 draw_prediction(figure, world, observed, prediction, t)
     return scores
 
@@ -245,6 +247,33 @@ def _map_groups(scores: list[SnapshotScore]) -> list[tuple[str, list[SnapshotSco
     for score in scores:
         groups.setdefault(score.world, []).append(score)
     return [*groups.items(), ("all", scores)]
+
+
+def format_summary(scores: list[SnapshotScore], settings: PredictorEvaluationConfig) -> str:
+    """Markdown table of the headline figures over every snapshot: G's and the reference G's
+    IoU over all unknown cells, near and far from the known map, the best local predictor's
+    IoU (G's margin over it), and the AUROC of the variance as a detector of G's errors."""
+    metres = settings.near_known_cells * RESOLUTION_M
+
+    def mean(values) -> float:
+        return float(np.nanmean(list(values)))
+
+    g = [mean(getattr(s, part).iou_g for s in scores) for part in ("all", "near", "far")]
+    ref = [mean(getattr(s, part).iou_reference for s in scores) for part in ("all", "near", "far")]
+    ceiling = mean(s.local_ceiling for s in scores)
+    auroc = mean(s.all.auroc for s in scores)
+    lines = [
+        f"| over {len(scores)} snapshots | all unknown | within {metres:g} m of known "
+        f"| beyond {metres:g} m |",
+        "|---|---|---|---|",
+        f"| IoU G | {g[0]:.3f} | {g[1]:.3f} | {g[2]:.3f} |",
+        f"| IoU reference G | {_figure(ref[0])} | {_figure(ref[1])} | {_figure(ref[2])} |",
+        f"| G - reference | {g[0] - ref[0]:+.3f} | {g[1] - ref[1]:+.3f} | {g[2] - ref[2]:+.3f} |",
+        f"| IoU best local predictor | {ceiling:.3f} | | |",
+        f"| G - best local | {g[0] - ceiling:+.3f} | | |",
+        f"| AUROC variance vs G's errors | {auroc:.3f} | | |",
+    ]
+    return "\n".join(lines)
 
 
 def format_table(scores: list[SnapshotScore]) -> str:
@@ -324,13 +353,20 @@ def _means(cells: list[CellScores]) -> tuple[float, float, float, float]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m mapex.training.evaluate", description=__doc__)
-    parser.add_argument(
+    maps = parser.add_mutually_exclusive_group()
+    maps.add_argument(
         "--maps",
         nargs="+",
-        type=Path,
-        default=validation_map_dirs(),
-        help="map directories in the KTH format (default: the six validation maps, "
-        "mapex.worlds.data)",
+        default=[str(path) for path in validation_map_dirs()],
+        metavar="SPEC",
+        help="worlds to take snapshots of: map directories or any world spec (default: the "
+        "six validation maps, mapex.worlds.data)",
+    )
+    maps.add_argument(
+        "--kth",
+        action="store_true",
+        help="the 18 KTH validation floors instead: 50037764_PLAN1, 50052748 and the held-out "
+        "kth_sdf floors (mapex.worlds.data.KTH_SDF_VALIDATION_FLOORS)",
     )
     defaults = PredictorEvaluationConfig()
     parser.add_argument(
@@ -348,7 +384,7 @@ def main(argv: list[str] | None = None) -> int:
         "--reference-weights",
         type=Path,
         default=REFERENCE_WEIGHTS_DIR,
-        help="the ensemble whose G is compared (default: %(default)s, the v1 weights)",
+        help="the ensemble whose G is compared (default: %(default)s, the v2 weights)",
     )
     parser.add_argument("--no-reference", action="store_true", help="compare with no reference G")
     add_inference_arguments(parser)
@@ -359,10 +395,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         reference = None if args.no_reference else args.reference_weights
         inference = inference_from_args(args)
-        scores = evaluate(args.maps, settings, args.figure, args.weights, inference, reference)
+        specs = kth_validation_specs() if args.kth else args.maps
+        scores = evaluate(specs, settings, args.figure, args.weights, inference, reference)
     except (WorldError, WeightsError) as error:
         print(f"mapex.training.evaluate: error: {error}", file=sys.stderr)
         return EXIT_USAGE
+    print(format_summary(scores, settings))
+    print()
     print(format_map_table(scores, settings))
     print()
     print(format_table(scores))

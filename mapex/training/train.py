@@ -41,7 +41,7 @@ from mapex.training.calibration import calibrate_weights, describe
 from mapex.training.dataset import (
     CropSampler,
     SnapshotSet,
-    collect_snapshots,
+    cached_snapshots,
     spec_name,
     training_world_specs,
 )
@@ -49,10 +49,13 @@ from mapex.worlds import WorldError
 from mapex.worlds.data import (
     IPA_DIR,
     KTH_DEV_DIR,
+    KTH_SDF_DIR,
     KTH_TRAINING_MAPS,
     SOURCES,
+    kth_sdf_training_floors,
     world_source,
 )
+from mapex.worlds.gazebo import KTH_SDF_SCALE
 
 
 def member_snapshots(
@@ -60,16 +63,37 @@ def member_snapshots(
     member: int,
     split: MemberSplit = "thirds",
     sources: tuple[str, ...] = (),
+    bag_share: float = 0.67,
+    seed: int = 0,
 ) -> SnapshotSet:
     """G (member 0) sees every snapshot. G_k sees, with "thirds", the worlds whose index is
-    k - 1 modulo 3; with "by_source", the worlds of `member_source_set(sources, k)`."""
+    k - 1 modulo 3; with "by_source", the worlds of `member_source_set(sources, k)`; with
+    "bagged", `bagged_worlds`."""
     if member == 0:
         return snapshots
     if split == "thirds":
         return snapshots.subset(snapshots.world_of % 3 == member - 1)
+    if split == "bagged":
+        worlds = bagged_worlds(snapshots, bag_share, seed + member)
+        return snapshots.subset(np.isin(snapshots.world_of, worlds))
     wanted = member_source_set(sources, member)
     worlds = [i for i, w in enumerate(snapshots.worlds) if world_source(w.name) in wanted]
     return snapshots.subset(np.isin(snapshots.world_of, worlds))
+
+
+def bagged_worlds(snapshots: SnapshotSet, share: float, seed: int) -> np.ndarray:
+    """Indices of a seeded random `share` of the worlds of each source (at least one each):
+    members trained on different bags of whole worlds disagree where the worlds they left
+    out differ, which is what their variance should flag."""
+    rng = np.random.default_rng(seed)
+    sources = np.array([world_source(world.name) for world in snapshots.worlds])
+    chosen = []
+    for source in SOURCES:
+        worlds = np.flatnonzero(sources == source)
+        if len(worlds):
+            count = max(1, round(share * len(worlds)))
+            chosen.append(rng.choice(worlds, size=count, replace=False))
+    return np.sort(np.concatenate(chosen)) if chosen else np.zeros(0, dtype=np.int64)
 
 
 def member_source_set(sources: tuple[str, ...], member: int) -> tuple[str, ...]:
@@ -140,7 +164,9 @@ def train_member(
     """Train one member with checkpoints; write its float16 weights; return their path.
     G's are its base weights (`base_weights`), which `polish_main` turns into g.pt."""
     name = MEMBER_NAMES[member]
-    data = member_snapshots(snapshots, member, config.member_split, config.member_sources)
+    data = member_snapshots(
+        snapshots, member, config.member_split, config.member_sources, config.bag_share, config.seed
+    )
     schedule = _Schedule(
         label=f"train {name}",
         steps=config.main_steps if member == 0 else config.member_steps,
@@ -371,6 +397,26 @@ def build_parser() -> argparse.ArgumentParser:
         "leaves them out)",
     )
     parser.add_argument(
+        "--kth-sdf-dir",
+        type=Path,
+        default=KTH_SDF_DIR / "train",
+        help="folder of the kth_sdf training floors <id>.world (default: %(default)s; the "
+        "held-out and flagged floors are left out; --set kth_sdf=false leaves all out)",
+    )
+    parser.add_argument(
+        "--snapshots",
+        type=Path,
+        default=None,
+        metavar="FILE.npz",
+        help="keep the exploration snapshots here: read when it holds those of this data "
+        "setting, written after collecting them otherwise (saves the collection on a rerun)",
+    )
+    parser.add_argument(
+        "--collect-only",
+        action="store_true",
+        help="collect (and keep) the snapshots, train nothing",
+    )
+    parser.add_argument(
         "--no-kth",
         action="store_true",
         help="leave the KTH maps out (with --set member_split=thirds or other member_sources)",
@@ -412,14 +458,17 @@ def main(argv: list[str] | None = None) -> int:
             members = []
         _check_main_for_members(members, config, args.out)
         kth_dirs = [] if args.no_kth else [str(args.kth_dir / m) for m in KTH_TRAINING_MAPS]
+        if config.kth_sdf and not args.no_kth:
+            kth_dirs += kth_sdf_specs(args.kth_sdf_dir)
         ipa_dirs = [str(args.ipa_dir / m) for m in config.ipa_maps] if config.use_ipa else []
         specs = training_world_specs(config, kth_dirs, ipa_dirs)
         _check_enough_worlds(members, len(specs))
         _check_sources(members, config, specs)
         _warn_if_emulated_bfloat16(device, config)
-        print(f"collecting snapshots from {len(specs)} worlds ...", file=sys.stderr)
-        snapshots = collect_snapshots(specs, config)
-        print(f"{len(snapshots.observed)} snapshots", file=sys.stderr)
+        snapshots = cached_snapshots(args.snapshots, specs, config)
+        print(f"{len(snapshots.observed)} snapshots of {len(specs)} worlds", file=sys.stderr)
+        if args.collect_only:
+            return 0
         for member in members:
             path = train_member(member, snapshots, config, device, args.out, args.resume)
             print(f"wrote {path}")
@@ -434,6 +483,19 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mapex.training.train: error: {error}", file=sys.stderr)
         return EXIT_USAGE
     return 0
+
+
+def kth_sdf_specs(directory: Path) -> list[str]:
+    """World specs of the trainable kth_sdf floors in `directory` (at their real size, the
+    converter's frame dropped, as `kth-sdf:ID` loads them), but those that come from the
+    authors' rasters in kth_dev; a one-line error when it holds none."""
+    floors = [f for f in kth_sdf_training_floors(directory) if f not in KTH_TRAINING_MAPS]
+    if not floors:
+        raise ValueError(
+            f"--kth-sdf-dir {directory}: no trainable <id>.world there (--set kth_sdf=false "
+            "trains without them)"
+        )
+    return [f"{directory / floor}.world@scale={KTH_SDF_SCALE},frame=drop" for floor in floors]
 
 
 def _warn_if_emulated_bfloat16(device: torch.device, config: PredictorTrainingConfig) -> None:

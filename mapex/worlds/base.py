@@ -12,6 +12,7 @@ GENERATED_PREFIX = "generated:"  # world names of procedural floor plans
 OPEN_GENERATED_PREFIX = "generated-open:"  # the same plans with free space outside
 HOUSE_PREFIX = "houseexpo:"  # one HouseExpo house
 CORRIDOR_PREFIX = "houseexpo-corridor:"  # HouseExpo houses along a corridor
+KTH_SDF_PREFIX = "kth-sdf:"  # a KTH floor of the shared data's Gazebo worlds
 
 
 def generated_prefix(free_outside: bool) -> str:

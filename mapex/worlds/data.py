@@ -2,7 +2,8 @@
 (docs/algorithms.md#worlds).
 
 The data sits beside the checkout in `../shared/data` (never in the project): KTH floors
-(`kth_dev/`), IPA building maps (`ipa/`, the KTH directory format) and HouseExpo house
+(`kth_dev/`, and 126 more as Gazebo worlds in `kth_sdf/train/`), IPA building maps (`ipa/`,
+the KTH directory format) and HouseExpo house
 plans (`houseexpo/plans.npz`). The validation split is fixed here, in code: its maps, and
 every other rendering of their buildings, never enter training data.
 """
@@ -12,12 +13,20 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from mapex.worlds.base import CORRIDOR_PREFIX, GENERATED_PREFIX, HOUSE_PREFIX, OPEN_GENERATED_PREFIX
+from mapex.worlds.base import (
+    CORRIDOR_PREFIX,
+    GENERATED_PREFIX,
+    HOUSE_PREFIX,
+    KTH_SDF_PREFIX,
+    OPEN_GENERATED_PREFIX,
+)
 
 SHARED_DATA_DIR = Path(__file__).resolve().parents[3] / "shared" / "data"
 KTH_DEV_DIR = SHARED_DATA_DIR / "kth_dev"
 IPA_DIR = SHARED_DATA_DIR / "ipa"
 HOUSEEXPO_PLANS = SHARED_DATA_DIR / "houseexpo" / "plans.npz"
+KTH_SDF_DIR = SHARED_DATA_DIR / "kth_sdf"
+KTH_SDF_SPLITS = ("train", "check")  # the folders of kth_sdf holding <id>.world files
 
 KTH_TRAINING_MAPS = ("50015847", "50015848")
 KTH_VALIDATION_MAPS = ("50037764_PLAN1", "50052748")
@@ -46,8 +55,33 @@ IPA_TRAINING_MAPS = (
 )
 IPA_MAPS = IPA_TRAINING_MAPS + IPA_VALIDATION_MAPS + IPA_HELD_OUT_MAPS
 
+# Our own KTH validation: whole buildings of kth_sdf/train held out (16 floors of 4
+# buildings). Drawn once, seeded: the floors grouped into buildings by id (ids at most 3
+# apart), 50015847's building left in training (v2's training floors), the groups shuffled
+# with numpy's default_rng(63) and taken in that order until 15 floors were held out.
+KTH_SDF_VALIDATION_FLOORS = (
+    "50053292",
+    "50053293",
+    "0510032266_A_40_1_103",
+    "0510032267_A_40_1_101",
+    "0510032268_A_40_1_102",
+    "0510032270_A_40_1_104",
+    "0510032271_A_40_1_105",
+    "0510030937_A_40_1_106",
+    "0510030938_A_40_1_102",
+    "0510030939_A_40_1_103",
+    "0510030940_A_40_1_104",
+    "0510030941_A_40_1_105",
+    "0510030942_A_40_1_101",
+    "50055637",
+    "50055638",
+    "50055639",
+)
+# floors the converter's authors flagged as broken (kth_sdf/flagged_worlds.txt): not trained on
+KTH_SDF_FLAGGED = ("0510032192_A_40_1_203", "50037764_PLAN2")
+
 VALIDATION_MAPS = KTH_VALIDATION_MAPS + IPA_VALIDATION_MAPS
-NEVER_TRAIN_ON = VALIDATION_MAPS + IPA_HELD_OUT_MAPS
+NEVER_TRAIN_ON = VALIDATION_MAPS + IPA_HELD_OUT_MAPS + KTH_SDF_VALIDATION_FLOORS
 
 
 def validation_map_dirs() -> list[Path]:
@@ -55,6 +89,20 @@ def validation_map_dirs() -> list[Path]:
     return [KTH_DEV_DIR / name for name in KTH_VALIDATION_MAPS] + [
         IPA_DIR / name for name in IPA_VALIDATION_MAPS
     ]
+
+
+def kth_validation_specs() -> list[str]:
+    """The KTH validation floors as world specs: the two official ones (the authors'
+    rasters in kth_dev), then our held-out kth_sdf floors."""
+    official = [str(KTH_DEV_DIR / name) for name in KTH_VALIDATION_MAPS]
+    return official + [f"{KTH_SDF_PREFIX}{name}" for name in KTH_SDF_VALIDATION_FLOORS]
+
+
+def kth_sdf_training_floors(directory: Path = KTH_SDF_DIR / "train") -> list[str]:
+    """The ids of the kth_sdf floors that may be trained on: every `<id>.world` in
+    `directory` but the held-out, validation and flagged ones, sorted."""
+    ids = sorted(path.stem for path in directory.glob("*.world"))
+    return [i for i in ids if not never_train_on(i) and i not in KTH_SDF_FLAGGED]
 
 
 def never_train_on(world_name: str) -> bool:

@@ -1,15 +1,15 @@
 """World sources: every form of world spec that `load_world` reads (docs/algorithms.md#worlds).
 
 `WORLD_SOURCES` names each source: how a spec of it is recognised (it starts with a prefix,
-it is one exact word, or it is a directory), the syntax shown to users, a one-line
-description and its loader as a "module:function" string, imported only when a spec of that
-source is loaded (as `mapex.prediction.PREDICTORS` does). A loader takes the spec's argument
-(the text after the prefix; the whole spec for a directory) and returns a World or raises a
-one-line WorldError; a loader that reads files may also take `max_cells` (the
-`world.max_cells` limit), to refuse a file from its header before reading it. Adding a
-source is one `register_world_source` call; the `--world` help of every command and the
-error for a spec that names no world are built from the registry (`world_spec_help`), so
-they list every source.
+it is one exact word, it names a file with one of some suffixes, or it is a directory), the
+syntax shown to users, a one-line description and its loader as a "module:function" string,
+imported only when a spec of that source is loaded (as `mapex.prediction.PREDICTORS` does).
+A loader takes the spec's argument (the text after the prefix; the whole spec for a file or
+a directory) and returns a World or raises a one-line WorldError; a loader that reads files
+may also take `max_cells` (the `world.max_cells` limit), to refuse a file from its header
+before reading it. Adding a source is one `register_world_source` call; the `--world` help
+of every command and the error for a spec that names no world are built from the registry
+(`world_spec_help`), so they list every source.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from mapex.worlds.base import (
     CORRIDOR_PREFIX,
     GENERATED_PREFIX,
     HOUSE_PREFIX,
+    KTH_SDF_PREFIX,
     OPEN_GENERATED_PREFIX,
     World,
     WorldError,
@@ -34,7 +35,7 @@ DEFAULT_WORLD = "generated:0"
 DEFAULT_SPEC = "default"
 DEFAULT_MAX_CELLS = WorldConfig().max_cells
 
-Match = Literal["prefix", "exact", "directory"]
+Match = Literal["prefix", "exact", "suffix", "directory"]
 
 
 @dataclass(frozen=True)
@@ -42,8 +43,10 @@ class WorldSource:
     """One form of world spec.
 
     match: "prefix" (the spec starts with `key`, the loader gets the rest), "exact" (the
-    spec is `key`, the loader gets "") or "directory" (the spec is the path of a directory,
-    the loader gets it whole; `key` unused). syntax: the form shown to users
+    spec is `key`, the loader gets ""), "suffix" (the spec, up to an `@` that starts its
+    options, ends with one of the space-separated suffixes of `key`, e.g. ".world .sdf"; the
+    loader gets it whole) or "directory" (the spec is the path of a directory, the loader
+    gets it whole; `key` unused). syntax: the form shown to users
     ("generated:SEED"). loader: "module:function", the function taking the argument.
     """
 
@@ -55,7 +58,7 @@ class WorldSource:
     loader: str
 
     def __post_init__(self) -> None:
-        if self.match not in ("prefix", "exact", "directory"):
+        if self.match not in ("prefix", "exact", "suffix", "directory"):
             raise ValueError(f"world source '{self.name}': unknown match '{self.match}'")
         if self.match != "directory" and not self.key:
             raise ValueError(f"world source '{self.name}': a {self.match} source needs a key")
@@ -71,12 +74,19 @@ class WorldSource:
             return spec.startswith(self.key)
         if self.match == "exact":
             return spec == self.key
+        if self.match == "suffix":
+            return spec.partition("@")[0].lower().endswith(tuple(self.key.split()))
         return Path(spec).is_dir()
 
     def load(self, spec: str, max_cells: int = DEFAULT_MAX_CELLS) -> World:
         """The world of `spec` (a spec this source recognises); a loader that takes
         `max_cells` gets it (it refuses a bigger map before reading it)."""
-        arguments = {"prefix": spec[len(self.key) :], "exact": "", "directory": spec}
+        arguments = {
+            "prefix": spec[len(self.key) :],
+            "exact": "",
+            "suffix": spec,
+            "directory": spec,
+        }
         module_name, _, function_name = self.loader.partition(":")
         loader = getattr(importlib.import_module(module_name), function_name)
         if "max_cells" in inspect.signature(loader).parameters:
@@ -86,7 +96,7 @@ class WorldSource:
     def shown(self, described: bool = True) -> str:
         """The syntax as help and errors show it: quoted unless a directory, with its
         description in parentheses when `described`."""
-        syntax = self.syntax if self.match == "directory" else f"'{self.syntax}'"
+        syntax = self.syntax if self.match in ("directory", "suffix") else f"'{self.syntax}'"
         return f"{syntax} ({self.description})" if described else syntax
 
 
@@ -121,14 +131,18 @@ def world_spec_help(described: bool = True) -> str:
 
 
 def find_world_source(spec: str) -> WorldSource | None:
-    """The source `spec` is of: an exact word, else the longest matching prefix, else the
-    directory source when `spec` is a directory; None when it is none of them."""
+    """The source `spec` is of: an exact word, else the longest matching prefix, else a file
+    source whose suffix it has, else the directory source when `spec` is a directory; None
+    when it is none of them."""
     exact = [s for s in WORLD_SOURCES.values() if s.match == "exact" and s.recognises(spec)]
     prefixed = [s for s in WORLD_SOURCES.values() if s.match == "prefix" and s.recognises(spec)]
+    suffixed = [s for s in WORLD_SOURCES.values() if s.match == "suffix" and s.recognises(spec)]
     if exact:
         return exact[0]
     if prefixed:
         return max(prefixed, key=lambda source: len(source.key))
+    if suffixed:
+        return suffixed[0]
     directory = _directory_source()
     return directory if directory is not None and directory.recognises(spec) else None
 
@@ -205,6 +219,22 @@ for _source in (
         f"{CORRIDOR_PREFIX}SEED",
         "seeded HouseExpo houses along a corridor",
         "mapex.worlds.houseexpo:corridor_world_of_spec",
+    ),
+    WorldSource(
+        "gazebo",
+        "suffix",
+        ".world .sdf",
+        "FILE.world[@scale=F,frame=drop]",
+        "a Gazebo SDF world: static boxes, cylinders and spheres as walls, the inside derived",
+        "mapex.worlds.gazebo:load_gazebo_world",
+    ),
+    WorldSource(
+        "kth-sdf",
+        "prefix",
+        KTH_SDF_PREFIX,
+        f"{KTH_SDF_PREFIX}ID",
+        "a KTH floor of ../shared/data/kth_sdf at its real size, the converter's frame dropped",
+        "mapex.worlds.gazebo:load_kth_sdf_world",
     ),
     WorldSource(
         "kth",

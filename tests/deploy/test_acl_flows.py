@@ -319,7 +319,8 @@ def test_tokens_come_and_go_at_every_watcher(acl):
 
 def test_every_query_a_run_makes_is_answered(acl):
     """The planner's step, world_info and ground_truth (world), predict and health
-    (worker); a runner's planner its runner world's step; a viewer's world_info."""
+    (worker); a runner's planner its runner world's step; a viewer's world_info; the oracle
+    worker's ground_truth, of a world process and of a planner simulating its world."""
     run = f"{RUN}q"
     world, worker, runner_world = acl.session("world"), acl.session("worker"), acl.session("runner")
     planner, runner_planner, viewer = (
@@ -337,9 +338,13 @@ def test_every_query_a_run_makes_is_answered(acl):
     }
     for key, session in served.items():
         session.declare_queryable(key, lambda query: query.reply(query.key_expr, b"answer"))
+    evaluated = run_key(f"{run}e", "ground_truth")  # services.evaluate's planner serves it
+    planner.declare_queryable(evaluated, lambda query: query.reply(query.key_expr, b"answer"))
     asks = [(planner, key) for key in list(served)[:5]] + [
         (runner_planner, robot_key(run, "r1", "step")),
         (viewer, run_key(run, "world_info")),
+        (worker, run_key(run, "ground_truth")),
+        (worker, evaluated),
     ]
 
     def answered(session: zenoh.Session, key: str) -> bool:

@@ -40,6 +40,17 @@ def test_run_writes_the_results_folder(tmp_path):
     assert (out / "final.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_an_oracle_run_says_so_and_records_its_predictor(tmp_path, capsys):
+    out = tmp_path / "oracle"
+    code = main(["run", "--world", "generated:2", "--method", "mapex", "--predictor", "oracle",
+                 "--steps", "60", "--no-progress", "--out", str(out)])  # fmt: skip
+    assert code == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["predictor"] == "oracle" and metrics["degraded_steps"] == []
+    assert metrics["auc"]["iou"] > 0.99  # G's map is the truth
+    assert "ground truth is the prediction" in capsys.readouterr().err
+
+
 def test_a_team_run_writes_every_robots_trajectory_and_the_team_record(tmp_path):
     code = main(["run", "--world", "generated:2", "--method", "nearest_team", "--robots", "3",
                  "--steps", "40", "--no-progress", "--out", str(tmp_path / "team")])  # fmt: skip
@@ -79,6 +90,7 @@ def test_a_method_that_does_not_coordinate_runs_as_a_team_sharing_one_map(tmp_pa
         (["--start", "9000,40"], "start cell (9000, 40) is outside the map"),
         (["--precision", "float16"], "invalid choice"),
         (["--predictor", "classical", "--precision", "bfloat16"], "only the 'lama' predictor"),
+        (["--predictor", "oracle", "--views", "1"], "only the 'lama' predictors"),
         (["--set", "world.max_cells=1000"], "above the limit of 1,000"),
         (["--robots", "0", "--method", "mapex_team"], "--robots must be at least 1"),
         (["--robots", "0"], "--robots must be at least 1"),

@@ -9,6 +9,7 @@ import pytest
 import mapex.results as results
 from mapex.config import ExplorationConfig
 from mapex.episode import run_episode
+from mapex.prediction import make_predictor
 from mapex.results import OutputError, check_output_folder, check_run_folder, write_results
 from mapex.worlds import load_world
 
@@ -75,3 +76,35 @@ def test_a_team_s_path_length_is_every_robot_s_summed():
     record = results.summary(result)
     assert record["path_length_m"] == pytest.approx(sum(result.path_lengths_m), abs=0.01)
     assert len(record["idle_steps"]) == 2 and record["team"]["robots"] == 2
+
+
+@pytest.mark.parametrize(
+    ("method", "predictor", "label"),
+    [
+        ("mapex", "oracle", "mapex@oracle"),
+        ("mapex_team", "lama-v2", "mapex_team@lama-v2"),
+        ("mapex", "classical", "mapex@classical"),
+        ("mapex", "lama", "mapex"),  # the default keeps today's names
+        ("mapex", "zenoh", "mapex"),  # what distributed runs recorded before
+        ("mapex", None, "mapex"),
+        ("nearest", "oracle", "nearest@oracle"),  # the same run, but the oracle's IoU and TU
+        ("observed_map", "oracle", "observed_map@oracle"),
+        ("pw_nbv", "lama-v2", "pw_nbv@lama-v2"),
+        ("mapex_plus_observed", None, "mapex_plus_observed"),
+    ],
+)
+def test_a_method_is_labelled_with_its_predictor_unless_the_default(method, predictor, label):
+    assert results.method_label(method, predictor) == label
+    assert results.episode_name("generated:0", method, 1, 0, 1, predictor) == (
+        f"generated_0-{label}-start1-seed0" + ("-team1" if method == "mapex_team" else "")
+    )
+
+
+def test_runs_of_two_predictors_get_two_folders():
+    world = load_world("generated:2")
+    config = ExplorationConfig(steps=10)
+    oracle = run_episode(world, "mapex", make_predictor("oracle", world.occupancy), 0, 0, config)
+    classical = run_episode(world, "mapex", make_predictor("classical"), 0, 0, config)
+    assert results.run_name(oracle) == "generated_2-mapex@oracle-start0-seed0"
+    assert results.run_name(classical) == "generated_2-mapex@classical-start0-seed0"
+    assert results.summary(oracle)["predictor"] == "oracle"

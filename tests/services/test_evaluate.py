@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
 from service_processes import REPO_ROOT, free_loopback_port, until
@@ -38,6 +39,7 @@ from services.evaluate import (
     remove_staging,
     run_episodes,
 )
+from services.pool import resolve_pool_predictor, worker_specs
 
 SMALL = ["--maps", "generated:0", "--methods", "nearest,mapex", "--starts", "0,1",
          "--steps", "60"]  # fmt: skip
@@ -118,6 +120,51 @@ def settings_lines(log: str) -> dict[str, str]:
     """Each child's settings line (`[<name>] ... settings: ...`), by name without its run."""
     found = re.findall(r"\[([a-z0-9_-]+)\][^\n]* INFO (settings: [^\n]*)", log)
     return {re.sub(r"^episode-.*", "episode", name): line for name, line in found}
+
+
+def test_an_oracle_pool_is_one_worker_and_its_runs_are_named_apart():
+    """Episodes under the oracle are `<method>@oracle` (one that reads no prediction too: its
+    IoU and TU are the oracle's); their planners ask for the oracle, whose pool is one worker
+    of member g with no network flags."""
+    episodes = plan_episodes(["generated:0"], ["nearest", "mapex"], [0], [0], predictor="oracle")
+    assert [e.name for e in episodes] == [
+        "generated_0-nearest@oracle-start0-seed0",  # the same run, but the oracle's IoU / TU
+        "generated_0-mapex@oracle-start0-seed0",
+    ]
+    assert episodes[1].run_id == "generated_0-mapex_oracle-start0-seed0"
+    spec = planner_spec(episodes[1], [], Path("out"), [])
+    assert spec.args[spec.args.index("--predictor") + 1] == "oracle"
+    args = build_parser().parse_args([*SMALL, "--predictor", "oracle"])
+    resolve_pool_predictor(args)
+    (worker,) = worker_specs(args.members, 1, 1, [], predictor="oracle")
+    assert worker.member == "g" and "--threads" not in worker.args
+    assert worker.args[worker.args.index("--predictor") + 1] == "oracle"
+    default = plan_episodes(["generated:0"], ["mapex"], [0], [0])[0]
+    assert "--predictor" not in planner_spec(default, [], Path("out"), []).args
+
+
+def test_an_oracle_evaluation_serves_each_planner_s_world_to_its_worker(tmp_path):
+    """The planners simulate their worlds and serve their ground truths; the one oracle
+    worker answers every re-plan from them, and the report labels the run mapex@oracle."""
+    out = tmp_path / "out"
+    command = [
+        sys.executable, "-m", "services.evaluate", "--maps", "generated:0", "--methods",
+        "mapex,nearest", "--steps", "40", "--starts", "0", "--predictor", "oracle",
+        "--out", str(out), "--no-progress", "--listen", f"tcp/127.0.0.1:{free_loopback_port()}",
+    ]  # fmt: skip
+    completed = subprocess.run(command, cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
+    assert completed.returncode == 0, completed.stderr
+    records = run_records(out)
+    assert set(records) == {
+        "generated_0-mapex@oracle-start0-seed0",
+        "generated_0-nearest-start0-seed0",
+    }
+    oracle = records["generated_0-mapex@oracle-start0-seed0"]
+    assert oracle["predictor"] == "oracle" and oracle["degraded_steps"] == []
+    assert oracle["replans"] > 1 and oracle["auc"]["iou"] > 0.99
+    assert re.findall(r"started (predictor-\S+)", completed.stderr) == ["predictor-g"]
+    assert "| mapex@oracle |" in (out / "report" / "report.md").read_text()
+    assert "the ground truth is the prediction" in completed.stderr
 
 
 def test_a_starts_file_gives_each_map_its_own_cells(tmp_path):
@@ -348,6 +395,11 @@ def _started_pids(log_path) -> list[str]:
         (["--maps", "generated:1", "--starts-file", "{walls}"], "no starts for map 'generated:1'"),
         (["--maps", "generated:0", "--starts-file", "{missing}"], "No such file"),
         (["--maps", "generated:0", "--starts-file", "{walls}"], "start cell (0, 0) is on a wall"),
+        (["--maps", "generated:0", "--predictor", "classical"], "runs in one process only"),
+        (
+            ["--maps", "generated:0", "--predictor", "oracle", "--members", "g1"],
+            "served by member g only",
+        ),
     ],
 )
 def test_bad_arguments_fail_in_one_line(args, message, tmp_path):

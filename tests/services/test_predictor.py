@@ -429,6 +429,24 @@ def test_member_server_answers_a_request():
     assert server.answered == 1
 
 
+def test_a_worker_answers_only_requests_for_the_predictor_it_serves():
+    """A request names its predictor (absent: the default, lama): a worker serving another
+    refuses it, so a planner never takes lama-v2's answer for lama's."""
+    server = MemberServer(ConstantPredictor(), "g", "w0", serves="lama-v2")
+    refused = server.answer(PredictRequest(1, partly_observed((12, 10))).encode())
+    assert isinstance(refused, ErrorReply)
+    assert refused.message == "this worker serves predictor lama-v2, not lama"
+    taken = server.answer(
+        PredictRequest(2, partly_observed((12, 10)), predictor="lama-v2").encode()
+    )
+    assert isinstance(taken, PredictReply) and server.answered == 1
+    default = MemberServer(ConstantPredictor(), "g", "w1")  # serves lama
+    answer = default.answer(
+        PredictRequest(3, partly_observed((12, 10)), predictor="oracle").encode()
+    )
+    assert isinstance(answer, ErrorReply) and "not oracle" in answer.message
+
+
 ROGUE_MODES = [
     "good", "garbage", "error", "wrong_request", "wrong_member", "wrong_shape", "wrong_worker",
 ]  # fmt: skip

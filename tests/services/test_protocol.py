@@ -230,6 +230,8 @@ def _sample_messages() -> list[Message]:
         ),
         PoseMessage(5, (3, 4)),
         PredictRequest(42, observed),
+        PredictRequest(43, observed, 10.0, "ev-run_1", (120, 7), "oracle"),  # the oracle's
+        PredictRequest(44, observed, None, None, None, "lama-v2"),
         PredictReply.from_probabilities(42, "g1", rng.random((40, 50)), "worker_0", 12.5),
         MapMessage(10, "observed", observed),
         MapMessage.from_probabilities(10, "variance", rng.random((40, 50)) * 0.3),
@@ -281,6 +283,22 @@ def test_a_scan_reply_carries_its_step_and_one_without_it_still_decodes():
     assert ScanReply.decode(ScanReply.from_scan(scan).encode()).t is None  # an older world's
     with pytest.raises(ProtocolError, match="t"):
         ScanReply.from_scan(scan, -1)
+
+
+def test_a_predict_request_names_run_origin_and_predictor_only_when_set():
+    """Fields added later travel only when set, so a request of the default predictor is
+    what workers older than them read, and a request without them (an older planner's)
+    still decodes, naming none."""
+    plain = PredictRequest(1, _OBSERVED, 5.0)
+    assert set(msgpack.unpackb(plain.encode())) == {
+        "schema", "type", "request_id", "observed", "budget_s",
+    }  # fmt: skip
+    oracle = PredictRequest(2, _OBSERVED, 5.0, "run-a", (3, 4), "oracle")
+    assert {"run", "origin", "predictor"} <= set(msgpack.unpackb(oracle.encode()))
+    old = {"schema": 1, "type": "predict_request", "request_id": 3,
+           "observed": encode_array(_OBSERVED)}  # fmt: skip
+    decoded = PredictRequest.decode(msgpack.packb(old, use_bin_type=True))
+    assert (decoded.budget_s, decoded.run, decoded.origin, decoded.predictor) == (None,) * 4
 
 
 def test_ground_truth_converts_to_and_from_a_world():
@@ -759,6 +777,11 @@ def test_corrupted_payloads_decode_or_raise_protocol_errors_only(message):
         (lambda: step_request(True, []), "seq"),
         (lambda: PredictRequest(-1, _OBSERVED), "request_id"),
         (lambda: PredictRequest(1, _OBSERVED.astype(np.float32)), "uint8"),
+        (lambda: PredictRequest(1, _OBSERVED, None, "run-a"), "run and origin go together"),
+        (lambda: PredictRequest(1, _OBSERVED, None, None, (0, 0)), "go together"),
+        (lambda: PredictRequest(1, _OBSERVED, None, "Run A", (0, 0)), "not a valid run id"),
+        (lambda: PredictRequest(1, _OBSERVED, None, "r", (-1, 0)), "origin"),
+        (lambda: PredictRequest(1, _OBSERVED, None, None, None, "LaMa!"), "predictor"),
         (lambda: MapMessage(0, "observed", _OBSERVED + 1), "codes other than"),
         (lambda: MapMessage.from_probabilities(0, "observed", np.zeros((2, 2))), "codes"),
         (lambda: PoseMessage(0, (1,)), "two non-negative"),

@@ -36,6 +36,7 @@ from mapex.budget import auto_steps, resolve_steps
 from mapex.config import ExplorationConfig
 from mapex.episode import run_episode
 from mapex.prediction.learned import LearnedEnsemble
+from mapex.prediction.oracle import OraclePredictor
 from mapex.results import write_results
 from mapex.team.starts import team_start_cells
 from mapex.worlds import load_world
@@ -52,6 +53,7 @@ from services.keys import (
     run_key,
 )
 from services.messages import ErrorReply, PoseMessage, StepRequest, decode_message
+from services.pool import resolve_pool_predictor
 from services.serving import RUN_TOKEN_ENV
 from services.supervisor import ProcessSpec, Supervisor, parse_tcp_endpoint
 from services.up import build_parser, child_specs, plan_runs, supervise
@@ -144,6 +146,37 @@ def test_distributed_run_equals_in_process_run_and_a_viewer_sees_its_maps(tmp_pa
     assert (tmp_path / "watch.gif").stat().st_size > 0
 
 
+def test_a_distributed_oracle_run_equals_the_in_process_one(tmp_path):
+    """One oracle worker (member g) reads the run's ground truth from the world; the planner
+    checks each answer against its own and gets the very run of `mapex run --predictor
+    oracle`, every re-plan answered by that worker."""
+    steps = 80
+    up, _ = start_up(tmp_path, "oracle", "--predictor", "oracle", "--steps", str(steps))
+    try:
+        assert up.wait() == 0, up.log()
+    finally:
+        up.kill()
+    metrics, trajectory, curves = read_run(tmp_path / "runs" / "oracle-0-r0")
+    world = load_world(WORLD)
+    result = run_episode(
+        world, "mapex", OraclePredictor(world.occupancy), 0, 0, ExplorationConfig(steps=steps)
+    )
+    expected_metrics, expected_trajectory, expected_curves = read_run(
+        write_results(result, world, tmp_path / "in_process")
+    )
+    np.testing.assert_array_equal(trajectory, expected_trajectory)
+    assert curves == expected_curves and metrics["auc"] == expected_metrics["auc"]
+    assert metrics["predictor"] == expected_metrics["predictor"] == "oracle"
+    assert metrics["degraded_steps"] == [] and metrics["degraded_metric_samples"] == []
+    assert set(up.children()) == {"predictor-g", "world-oracle-0", "planner-oracle-0-r0"}
+    worker = {"g": f"up{up.process.pid}-g-0"}
+    assert (
+        metrics["replans"] > 1 and len(metrics["member_workers"]["replans"]) == metrics["replans"]
+    )
+    assert all(served == worker for _, served in metrics["member_workers"]["replans"])
+    assert "the ground truth is the prediction" in up.log()
+
+
 @pytest.mark.parametrize(
     "method",
     [
@@ -224,6 +257,24 @@ def test_every_child_gets_the_run_s_settings_on_its_command_line():
     assert all(spec.restart and not spec.env for spec in specs["workers"])
     items = [b for a, b in zip(spec.args, spec.args[1:], strict=False) if a == "--set"]
     assert RunConfig().with_overrides(items) == run_config  # each child rebuilds the run's
+
+
+def test_the_chosen_predictor_reaches_every_worker_and_planner_and_the_oracle_is_one_worker():
+    args, run_config, runs = up_plan("--predictor", "lama-v2")
+    specs = child_specs(args, runs, [], run_config)
+    for spec in specs["workers"] + specs["planners"]:
+        assert spec.args[spec.args.index("--predictor") + 1] == "lama-v2", spec.args
+    args, run_config, runs = up_plan()  # the default's command lines are as they were
+    assert all(
+        "--predictor" not in spec.args
+        for role in child_specs(args, runs, [], run_config).values()
+        for spec in role
+    )
+    args, run_config, runs = up_plan("--predictor", "oracle")
+    resolve_pool_predictor(args)
+    specs = child_specs(args, runs, [], run_config)
+    assert [spec.name for spec in specs["workers"]] == ["predictor-g"]
+    assert "--threads" not in specs["workers"][0].args
 
 
 def test_a_team_of_any_method_deploys_around_the_start_and_runs_go_round_the_corners():
@@ -439,6 +490,8 @@ def test_an_auto_budget_run_ends_once_gs_iou_reaches_the_level(tmp_path):
         (["--set", "services.nope=1"], "override 'services.nope=1': unknown field 'nope'"),
         (["--out", "README.md"], "cannot write results to README.md: it is a file"),
         (["--set", "world.max_cells=1000"], "--set world.max_cells="),
+        (["--predictor", "classical"], "--predictor classical runs in one process only"),
+        (["--predictor", "oracle", "--members", "g,g1"], "served by member g only"),
     ],
 )
 def test_bad_flags_fail_in_one_line(args, message):

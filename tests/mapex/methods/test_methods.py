@@ -126,3 +126,19 @@ def test_seeded_episode_is_deterministic(name):
         np.testing.assert_array_equal(getattr(first.curves, name_), getattr(second.curves, name_))
     assert len(first.trajectory) > 30  # it explored
     assert first.curves.coverage[-1] > first.curves.coverage[0]
+
+
+@pytest.mark.parametrize("name", sorted(n for n, cls in METHODS.items() if cls.uses_prediction))
+def test_seeded_oracle_episode_is_deterministic_and_never_degraded(name):
+    """Every method that reads a prediction runs on the ground truth (the oracle), the same
+    way twice, with every re-plan answered: none is degraded or falls back to O_t."""
+    world = generate_floor_plan(5)
+    predictor = make_predictor("oracle", world.occupancy)
+    config = ExplorationConfig(steps=80)
+    first = run_episode(world, name, predictor, 1, seed=7, config=config)
+    second = run_episode(world, name, predictor, 1, seed=7, config=config)
+    np.testing.assert_array_equal(first.trajectory, second.trajectory)
+    assert first.curves.coverage == second.curves.coverage and first.predictor == "oracle"
+    assert first.stats.degraded_steps == first.stats.fallback_steps == []
+    assert first.stats.replans > 1 and first.curves.coverage[-1] > first.curves.coverage[0]
+    assert min(first.curves.iou) > 0.99  # G's map is the truth: IoU is trivially ~1

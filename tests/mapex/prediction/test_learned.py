@@ -138,3 +138,22 @@ def test_shipped_weights_load_on_cpu_and_say_how_they_were_trained():
     metadata = read_metadata(WEIGHTS_DIR / "g.pt")
     assert metadata["steps"] > 0 and metadata["training_wall_time_s"] > 0
     assert not {"50037764_PLAN1", "50052748"} & set(metadata["worlds"])  # never trained on
+
+
+def test_lama_v2_reads_the_v2_folder_whatever_the_default_folder_holds(monkeypatch, tmp_path):
+    """`lama` means the default folder (new weights land there); `lama-v2` keeps its own."""
+    read = []
+    monkeypatch.setattr(
+        "mapex.prediction.learned.load_member_with_bias",
+        lambda path, device: read.append(path) or (LamaGenerator(SMALL).eval(), 0.0),
+    )
+    assert make_predictor("lama-v2", members=("g", "g2")).name == "lama-v2"
+    assert make_predictor("lama", members=("g",)).name == "lama"
+    make_predictor("lama-v2", weights_dir=tmp_path, members=("g1",))
+    assert read == [
+        WEIGHTS_DIR / "v2" / "g.pt",
+        WEIGHTS_DIR / "v2" / "g2.pt",
+        WEIGHTS_DIR / "g.pt",
+        tmp_path / "g1.pt",
+    ]
+    assert all((WEIGHTS_DIR / "v2" / f"{name}.pt").is_file() for name in MEMBER_NAMES)

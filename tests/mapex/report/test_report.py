@@ -9,8 +9,8 @@ import sys
 
 import numpy as np
 import pytest
+from run_folders import SHAPE, write_run
 
-from mapex.grid import FREE, OCCUPIED, UNKNOWN
 from mapex.methods import ABLATIONS, BEYOND_PAPER, FOLLOW_UP, MAIN_COMPARISON
 from mapex.report import (
     auc_table,
@@ -31,63 +31,6 @@ from mapex.report import (
 from mapex.report.config import ReportConfig
 from mapex.report.runs import RunRecord
 from mapex.results import CAMPAIGN_FILE, campaign_record
-
-SHAPE = (12, 18)
-
-
-def write_run(
-    root,
-    world,
-    method,
-    start=0,
-    seed=0,
-    cov=0.5,
-    iou=0.4,
-    tu=0.3,
-    steps=200,
-    early=False,
-    degraded=None,
-    snapshots=True,
-    prediction=True,
-    end_reason=None,
-):
-    """A finished run folder whose curves are constant at the given AUCs (so curve means and
-    metrics.json agree); snapshots at 100 and 200 of a small map."""
-    name = f"{world.replace(':', '_')}-{method}-start{start}-seed{seed}"
-    folder = root / name
-    folder.mkdir(parents=True)
-    metrics = {
-        "world": world,
-        "method": method,
-        "predictor": "classical",
-        "start_index": start,
-        "seed": seed,
-        "steps": steps,
-        "finished_at": 150 if early else None,
-        "early_termination": early,
-        "end_reason": end_reason or ("explored" if early else "budget"),
-        "auc": {"coverage": cov, "iou": iou, "tu": tu},
-        "final": {"coverage": cov, "iou": iou, "tu": tu},
-        "replans": 3,
-        "wall_time_s": 1.0,
-        "config": {},
-    }
-    if degraded is not None:
-        metrics["degraded_steps"] = degraded
-    (folder / "metrics.json").write_text(json.dumps(metrics))
-    lines = ["step,coverage,iou,tu"]
-    for t in range(0, steps + 1, 50):
-        lines.append(f"{t},{cov:.6f},{iou:.6f},{f'{tu:.6f}' if t % 100 == 0 else ''}")
-    (folder / "curves.csv").write_text("\n".join(lines) + "\n")
-    if snapshots:
-        observed = np.full((2, *SHAPE), UNKNOWN, dtype=np.uint8)
-        observed[:, 2:6, 2:8] = FREE
-        observed[:, 1, :] = OCCUPIED
-        arrays = {"steps": np.array([100, 200], dtype=np.int64), "observed": observed}
-        if prediction:
-            arrays["prediction"] = np.full((2, *SHAPE), 40, dtype=np.uint8)
-        np.savez_compressed(folder / "snapshots.npz", **arrays)
-    return folder
 
 
 @pytest.fixture
@@ -522,3 +465,32 @@ def test_merge_errors_are_one_line(tmp_path, capsys):
     assert main([str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "m")]) == 2
     error = capsys.readouterr().err.strip().splitlines()
     assert len(error) == 1 and CAMPAIGN_FILE in error[0] and "unreadable" in error[0]
+
+
+def test_runs_of_other_predictors_are_labelled_apart_and_their_folders_found(tmp_path):
+    """`mapex@oracle` and `mapex@lama-v2` beside the default's plain `mapex` (and an older
+    distributed record's `zenoh`); a method that reads no prediction is labelled too (its
+    IoU and TU are the predictor's)."""
+    root = tmp_path / "results"
+    write_run(root, "w", "mapex", 0, cov=0.6)
+    write_run(root, "w", "mapex", 1, cov=0.6, predictor="zenoh")
+    write_run(root, "w", "mapex", 0, cov=0.9, predictor="oracle")
+    write_run(root, "w", "mapex", 0, cov=0.7, predictor="lama-v2")
+    write_run(root, "w", "nearest", 0, cov=0.5, predictor="oracle")
+    runs = load_runs(root)
+    assert sorted(run.path.name for run in runs) == [
+        "w-mapex-start0-seed0",
+        "w-mapex-start1-seed0",
+        "w-mapex@lama-v2-start0-seed0",
+        "w-mapex@oracle-start0-seed0",
+        "w-nearest@oracle-start0-seed0",
+    ]
+    table = auc_table(runs)
+    assert set(table.methods) == {"mapex", "mapex@oracle", "mapex@lama-v2", "nearest@oracle"}
+    assert table.row("mapex").runs == 2
+    assert table.row("mapex@oracle").auc["coverage"].mean == pytest.approx(0.9)
+    assert missing_runs(runs) == [  # named as their folders are
+        "w-mapex@lama-v2-start1-seed0",
+        "w-mapex@oracle-start1-seed0",
+        "w-nearest@oracle-start1-seed0",
+    ]

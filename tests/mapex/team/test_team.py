@@ -13,6 +13,7 @@ from mapex.grid import FREE, UNKNOWN
 from mapex.methods import METHODS, TEAM_METHODS, make_method
 from mapex.methods.base import PlanningContext
 from mapex.methods.claims import Claim, ClaimBoard
+from mapex.prediction import make_predictor
 from mapex.prediction.base import EnsemblePrediction
 from mapex.team.shared_prediction import EpochPrediction
 from mapex.team.starts import team_start_cells
@@ -229,3 +230,16 @@ def test_epoch_predictions_keep_team_runs_deterministic(world, predictor, epoch_
         np.testing.assert_array_equal(a, b)
     assert runs[0].curves.coverage == runs[1].curves.coverage
     assert runs[0].curves.coverage[-1] > runs[0].curves.coverage[0]
+
+
+@pytest.mark.parametrize("name", sorted(n for n in TEAM_METHODS if METHODS[n].uses_prediction))
+def test_a_team_on_the_oracle_shares_the_truth_and_is_never_degraded(world, name):
+    """The team's epoch prediction is the oracle's, with the cells known since copied
+    through (`OraclePrediction.with_known`): every re-plan answered, runs repeatable."""
+    oracle, config = make_predictor("oracle", world.occupancy), replace(CONFIG, steps=80)
+    runs = [run_episode(world, name, oracle, [1], robots=2, seed=5, config=config) for _ in "ab"]
+    for a, b in zip(runs[0].trajectories, runs[1].trajectories, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert runs[0].curves.coverage == runs[1].curves.coverage
+    assert runs[0].curves.coverage[-1] > runs[0].curves.coverage[0]
+    assert all(stats.degraded_steps == [] for stats in runs[0].robot_stats)

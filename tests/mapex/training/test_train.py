@@ -15,6 +15,7 @@ from mapex.prediction.weights import MEMBER_NAMES, WeightsError, load_member, re
 from mapex.training.dataset import (
     CropSampler,
     SnapshotSet,
+    cached_snapshots,
     training_world_specs,
 )
 from mapex.worlds import World, load_world
@@ -452,3 +453,46 @@ def test_a_validation_map_named_in_ipa_maps_is_refused_before_any_work(tmp_path,
         "mapex.training.train: error: NLB is a validation map (mapex.worlds.data): "
         "never train on it"
     )
+
+
+def test_bagged_members_each_see_their_own_share_of_every_source():
+    names = [f"generated-open:{i}" for i in range(6)] + [
+        f"houseexpo-corridor:{i}" for i in range(3)
+    ]
+    data = SnapshotSet(
+        [_named_world(n) for n in names],
+        [np.zeros((4, 4), dtype=np.uint8)] * 9,
+        np.arange(9),
+    )
+    bags = [
+        set(train.member_snapshots(data, k, "bagged", (), 0.67, seed=0).world_of) for k in (1, 2, 3)
+    ]
+    for bag in bags:
+        assert len(bag & set(range(6))) == 4 and len(bag & {6, 7, 8}) == 2  # 2/3 of each source
+    assert len({frozenset(bag) for bag in bags}) == 3  # a draw of its own per member
+    again = set(train.member_snapshots(data, 1, "bagged", (), 0.67, seed=0).world_of)
+    assert again == bags[0]  # seeded
+
+
+def test_kth_sdf_training_floors_leave_out_held_out_flagged_and_kth_dev_floors(tmp_path):
+    for floor in ("50015847", "50053292", "0510032192_A_40_1_203", "50099999", "50037764_PLAN1"):
+        (tmp_path / f"{floor}.world").write_text("<sdf/>")
+    specs = train.kth_sdf_specs(tmp_path)
+    assert specs == [f"{tmp_path / '50099999'}.world@scale=0.5,frame=drop"]
+    (tmp_path / "50099999.world").unlink()
+    with pytest.raises(ValueError, match="no trainable"):
+        train.kth_sdf_specs(tmp_path)
+
+
+def test_snapshots_are_kept_and_read_back_for_the_same_data_only(tmp_path, capsys):
+    specs = training_world_specs(TINY, [])
+    path = tmp_path / "snapshots.npz"
+    first = cached_snapshots(path, specs, TINY)
+    again = cached_snapshots(path, specs, TINY)
+    assert "read from" in capsys.readouterr().err
+    assert len(again.observed) == len(first.observed)
+    assert all(np.array_equal(a, b) for a, b in zip(first.observed, again.observed, strict=True))
+    assert np.array_equal(first.world_of, again.world_of)
+    other = dataclasses.replace(TINY, snapshot_every_steps=60)
+    cached_snapshots(path, specs, other)
+    assert "holds other snapshots" in capsys.readouterr().err

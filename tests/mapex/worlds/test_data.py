@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 from tiny_training import TINY
 
-from mapex.training.dataset import explore_snapshots, training_world_specs
+from mapex.training.dataset import explore_snapshots, spec_name, training_world_specs
 from mapex.training.train import build_parser
 from mapex.worlds.data import (
     IPA_DIR,
@@ -13,9 +15,14 @@ from mapex.worlds.data import (
     IPA_MAPS,
     IPA_TRAINING_MAPS,
     IPA_VALIDATION_MAPS,
+    KTH_SDF_DIR,
+    KTH_SDF_VALIDATION_FLOORS,
     KTH_TRAINING_MAPS,
     KTH_VALIDATION_MAPS,
     NEVER_TRAIN_ON,
+    kth_sdf_training_floors,
+    kth_validation_specs,
+    never_train_on,
     validation_map_dirs,
     world_source,
 )
@@ -62,3 +69,37 @@ def test_the_training_command_trains_on_no_validation_map():
         "kth",
         "procedural",
     }
+
+
+NEEDS_KTH_SDF = pytest.mark.skipif(
+    not (KTH_SDF_DIR / "train").is_dir(), reason="../shared/data/kth_sdf is not present"
+)
+
+
+def _id_number(floor: str) -> int:
+    return int(re.match(r"\d+", floor).group())
+
+
+@NEEDS_KTH_SDF
+def test_the_kth_validation_floors_are_whole_buildings_of_kth_sdf():
+    present = {p.stem for p in (KTH_SDF_DIR / "train").glob("*.world")}
+    assert set(KTH_SDF_VALIDATION_FLOORS) <= present
+    trainable = kth_sdf_training_floors()
+    assert not set(trainable) & set(KTH_SDF_VALIDATION_FLOORS)
+    # no trained floor is a floor of a held-out building (floor ids at most 3 apart)
+    held = [_id_number(f) for f in KTH_SDF_VALIDATION_FLOORS]
+    assert all(min(abs(_id_number(f) - h) for h in held) > 3 for f in trainable)
+    assert len(trainable) + len(KTH_SDF_VALIDATION_FLOORS) + 1 == len(present)  # + 1 flagged
+
+
+def test_kth_validation_specs_are_the_official_floors_then_the_held_out_ones():
+    specs = kth_validation_specs()
+    assert [spec_name(s) for s in specs] == [*KTH_VALIDATION_MAPS, *KTH_SDF_VALIDATION_FLOORS]
+    assert all(never_train_on(spec_name(s)) for s in specs)
+
+
+@pytest.mark.parametrize("name", KTH_SDF_VALIDATION_FLOORS[:3])
+def test_training_refuses_a_held_out_kth_floor_in_any_form(name, tmp_path):
+    for spec in (f"kth-sdf:{name}", f"{tmp_path / name}.world@scale=0.5"):
+        with pytest.raises(ValueError, match="never train on it"):
+            explore_snapshots(spec, TINY)

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sdf_worlds import model, room_links, world, write
 
 from mapex.worlds import (
     WORLD_SOURCES,
@@ -21,31 +22,43 @@ from mapex.worlds import (
     register_world_source,
     world_spec_help,
 )
-from mapex.worlds.data import HOUSEEXPO_PLANS
+from mapex.worlds.data import HOUSEEXPO_PLANS, KTH_SDF_DIR
+from mapex.worlds.gazebo import GazeboOptions, gazebo_world
 from mapex.worlds.houseexpo import corridor_world, house_world
 from mapex.worlds.procedural import plan_config
 
 NEEDS_HOUSEEXPO = pytest.mark.skipif(
     not HOUSEEXPO_PLANS.is_file(), reason="../shared/data/houseexpo is not present"
 )
+NEEDS_KTH_SDF = pytest.mark.skipif(
+    not KTH_SDF_DIR.is_dir(), reason="../shared/data/kth_sdf is not present"
+)
 DEV_MAP = "50052748"  # the smallest development map
+SDF_WORLD = world(model("m", "0 0 0 0 0 0", room_links(6, 4)))  # a hand-made Gazebo world
 
 
-def sample_spec(name: str, kth_dir: Path | None) -> str:
-    """A spec of each built-in source (`kth_dir`: the development maps, for "kth")."""
+def sample_spec(name: str, kth_dir: Path | None, tmp_dir: Path | None = None) -> str:
+    """A spec of each built-in source (`kth_dir`: the development maps, for "kth"; `tmp_dir`:
+    where the "gazebo" sample is written)."""
+    if name == "gazebo":
+        return f"{write(tmp_dir / 'room.world', SDF_WORLD)}@scale=0.5"
     return {
         "default": "default",
         "generated": "generated:3",
         "generated-open": "generated-open:3",
         "houseexpo": "houseexpo:0",
         "houseexpo-corridor": "houseexpo-corridor:0",
+        "kth-sdf": f"kth-sdf:{DEV_MAP}",
         "kth": str(kth_dir / DEV_MAP) if kth_dir else "unused",
     }[name]
 
 
-def expected_world(name: str, kth_dir: Path | None) -> World:
+def expected_world(name: str, kth_dir: Path | None, tmp_dir: Path | None = None) -> World:
     """The world `sample_spec(name)` loaded before the registry, by the same functions."""
+    options = GazeboOptions(scale=0.5, drop_frame=True)
     return {
+        "gazebo": lambda: gazebo_world(tmp_dir / "room.world", GazeboOptions(scale=0.5)),
+        "kth-sdf": lambda: gazebo_world(KTH_SDF_DIR / "check" / f"{DEV_MAP}.world", options),
         "default": lambda: generate_floor_plan(0),
         "generated": lambda: generate_floor_plan(3, plan_config(free_outside=False)),
         "generated-open": lambda: generate_floor_plan(3, plan_config(free_outside=True)),
@@ -61,6 +74,8 @@ BUILT_IN = {
     "generated-open": [],
     "houseexpo": [NEEDS_HOUSEEXPO],
     "houseexpo-corridor": [NEEDS_HOUSEEXPO],
+    "gazebo": [],
+    "kth-sdf": [NEEDS_KTH_SDF],
     "kth": [],
 }
 
@@ -81,10 +96,12 @@ def test_every_registered_source_has_a_sample_here() -> None:
 @pytest.mark.parametrize(
     "name", [pytest.param(name, marks=marks) for name, marks in BUILT_IN.items()]
 )
-def test_every_source_loads_its_sample_spec(name: str, request: pytest.FixtureRequest) -> None:
+def test_every_source_loads_its_sample_spec(
+    name: str, request: pytest.FixtureRequest, tmp_path: Path
+) -> None:
     kth_dir = request.getfixturevalue("kth_dev_dir") if name == "kth" else None
-    world = load_world(sample_spec(name, kth_dir))
-    expected = expected_world(name, kth_dir)
+    world = load_world(sample_spec(name, kth_dir, tmp_path))
+    expected = expected_world(name, kth_dir, tmp_path)
     assert world.name == expected.name
     assert np.array_equal(world.occupancy, expected.occupancy)
     assert np.array_equal(world.valid_space, expected.valid_space)
@@ -163,7 +180,7 @@ def test_clashing_sources_are_refused(scratch_registry, source, message) -> None
 @pytest.mark.parametrize(
     "fields, message",
     [
-        (("x", "suffix", "x:", "x:N", "d", "m:f"), "unknown match"),
+        (("x", "regex", "x:", "x:N", "d", "m:f"), "unknown match"),
         (("x", "prefix", "", "x:N", "d", "m:f"), "needs a key"),
         (("x", "prefix", "x:", "x:N", "d", "module.function"), "not 'module:function'"),
     ],
