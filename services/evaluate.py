@@ -223,7 +223,7 @@ def finished(episode: Episode, out_dir: Path, config: dict | None = None) -> boo
 
 def run_problem(episode: Episode, folder: Path, config: dict | None = None) -> str | None:
     """Why a finished folder cannot count for `episode`, or None: its metrics and curves must
-    parse, name this world, method (with its predictor, where the method reads one:
+    parse, name this world, method (with its predictor unless the default:
     `mapex.results.method_label`), start and seed, and (given `config`, the plain-data
     configuration the episode would run with) agree with it on every field both have."""
     try:

@@ -5,13 +5,11 @@ docs and docstrings quote answers `--help`."""
 import ast
 import dataclasses
 import re
-import subprocess
-import sys
-from concurrent.futures import ThreadPoolExecutor
 from functools import cache
 from pathlib import Path
 
 import pytest
+from commands_at_once import helps_at_once
 
 from services.keys import KEY_PREFIX, ROBOT_TOPICS, RUN_TOPICS
 from services.messages import Message
@@ -138,32 +136,24 @@ QUOTED = _quoted_commands()
 QUOTED_MODULES = sorted({module for module, _ in QUOTED})
 
 
-def _help(*args: str) -> tuple[int, str]:
-    done = subprocess.run(
-        [sys.executable, "-m", *args, "--help"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
-    return done.returncode, done.stdout + done.stderr
+def _answers(commands: list[tuple[str, ...]]) -> dict[tuple[str, ...], tuple[int, str]]:
+    """(exit code, output) of `python -m COMMAND --help` of each command, run in parallel
+    (each is mostly imports) and once per session (tests/test_imports.py asks for some too)."""
+    done = helps_at_once(commands)
+    return {c: (d.returncode, d.stdout + d.stderr) for c, d in zip(commands, done, strict=True)}
 
 
 @cache
 def _helps() -> dict[tuple[str, ...], tuple[int, str]]:
     """`python -m MODULE --help` of every quoted module, then `MODULE SUBCOMMAND --help` of every
-    quoted word its usage lists as a subcommand; run in parallel (each is mostly imports)."""
-    with ThreadPoolExecutor(max_workers=4) as pool:
-        modules = [(module,) for module in QUOTED_MODULES]
-        helps = dict(zip(modules, pool.map(lambda command: _help(*command), modules), strict=True))
-        subcommands = sorted(
-            (module, word)
-            for module, word in QUOTED
-            if word and word in _subcommands(helps[(module,)][1])
-        )
-        answers = pool.map(lambda command: _help(*command), subcommands)
-        helps |= dict(zip(subcommands, answers, strict=True))
-    return helps
+    quoted word its usage lists as a subcommand."""
+    helps = _answers([(module,) for module in QUOTED_MODULES])
+    subcommands = sorted(
+        (module, word)
+        for module, word in QUOTED
+        if word and word in _subcommands(helps[(module,)][1])
+    )
+    return helps | _answers(subcommands)
 
 
 def _subcommands(help_text: str) -> set[str]:

@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import ast
 import subprocess
-import sys
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import pytest
+from commands_at_once import helps_at_once
 
 ROOT = Path(__file__).resolve().parents[1]
 TOP_PACKAGES = ("mapex", "services", "deploy")
@@ -234,13 +234,17 @@ def test_no_import_cycle_between_packages() -> None:
     assert not found, f"import cycles between packages:\n{describe(found)}"
 
 
-@pytest.mark.parametrize("old, new", sorted(MOVED_COMMANDS.items()))
-def test_a_moved_command_still_runs_by_its_old_name(old: str, new: str) -> None:
-    def run(module: str) -> subprocess.CompletedProcess:
-        command = [sys.executable, "-m", module, "--help"]
-        return subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=120)
+@pytest.fixture(scope="module")
+def moved_helps() -> dict[str, subprocess.CompletedProcess]:
+    """`python -m MODULE --help` of every moved command by its old and its new name, all run
+    at once (each is mostly imports), but those tests/test_docs.py ran in this session."""
+    modules = sorted({*MOVED_COMMANDS, *MOVED_COMMANDS.values()})
+    return dict(zip(modules, helps_at_once([(m,) for m in modules]), strict=True))
 
-    by_old_name, by_new_name = run(old), run(new)
+
+@pytest.mark.parametrize("old, new", sorted(MOVED_COMMANDS.items()))
+def test_a_moved_command_still_runs_by_its_old_name(old: str, new: str, moved_helps) -> None:
+    by_old_name, by_new_name = moved_helps[old], moved_helps[new]
     assert by_old_name.returncode == 0, by_old_name.stderr
     assert by_old_name.stdout == by_new_name.stdout
     assert len((ROOT / Path(*old.split("."))).with_suffix(".py").read_text().splitlines()) < 10

@@ -70,10 +70,10 @@ class PredictorTrainingConfig(Checked):
     edge_overhang_cells: int = ranged(64, 0)  # how far a crop may hang over the map's border
     batch_size: int = ranged(8, 1)
     main_steps: int = ranged(10000, 0)  # G's pretraining, on every source
-    member_steps: int = ranged(4000, 0)  # G_1..G_3 each
-    # G_1..G_3 fine-tune G's pretrained weights (v2; the paper fine-tunes one LaMa) or, when
-    # False, start from their own random weights (v3: independent networks disagree more)
-    members_from_main: bool = False
+    member_steps: int = ranged(1500, 0)  # G_1..G_3 each
+    # G_1..G_3 fine-tune G's pretrained weights (v2, v3; the paper fine-tunes one LaMa) or,
+    # when False, start from their own random weights (needs a longer member_steps)
+    members_from_main: bool = True
     # G_k's data: "bagged" = a seeded random `bag_share` of the worlds of every source (its
     # own draw per member); "by_source" = the k-th entry of member_sources ("+" joins
     # sources); "thirds" = the worlds whose index is k - 1 modulo 3.
@@ -97,6 +97,11 @@ class PredictorTrainingConfig(Checked):
     main_polish_steps: int = ranged(1500, 0)
     polish_sources: tuple[str, ...] = ("ipa", "kth", "procedural")
     polish_soft_iou_weight: float = ranged(3.0, 0)
+    # and this many times a soft IoU over the unknown cells farther than `far_cells` from
+    # any known cell of the crop alone: the walls of rooms nobody has seen, which the whole
+    # crop's IoU leaves to the near cells' many walls (0: none)
+    polish_far_soft_iou_weight: float = ranged(0.0, 0)
+    far_cells: int = ranged(10, 1)  # 1 m, as the evaluation's "near" (Chebyshev, in cells)
     polish_learning_rate: float = positive(1e-3)
     # G is polished this many times from its base weights (seeds seed + 4, + 5, ...) and
     # g.pt is the mean of the polished weights (a uniform model soup). 1: one polish.

@@ -93,7 +93,10 @@ def score_cells(
     reference_main: np.ndarray | None = None,
 ) -> CellScores:
     """IoU of G, of classical, of unknown = free and of a reference G (if given), and the
-    AUROC, over `cells` (bool)."""
+    AUROC, over `cells` (bool); all NaN when `cells` is empty (a snapshot with no unknown
+    cell that far from the known map has no score there, rather than a perfect one)."""
+    if not cells.any():
+        return CellScores(*(float("nan"),) * 5)
     wrong = (learned.main >= threshold) != truth
     reference = (
         float("nan")
@@ -226,14 +229,21 @@ def format_map_table(scores: list[SnapshotScore], settings: PredictorEvaluationC
     ]
     for world, group in _map_groups(scores):
         g, c, free, area = _means([s.all for s in group])
-        reference = float(np.mean([s.all.iou_reference for s in group]))
-        far = float(np.nanmean([s.far_variance_share for s in group]))
+        reference = float(_nanmean([s.all.iou_reference for s in group]))
+        far = float(_nanmean([s.far_variance_share for s in group]))
         versus = "-" if np.isnan(reference) else f"{g - reference:+.3f}"
         lines.append(
             f"| {world} | {g:.3f} | {_figure(reference)} | {c:.3f} | {free:.3f} | {versus} "
             f"| {area:.3f} | {_figure(far)} |"
         )
     return "\n".join(lines)
+
+
+def _nanmean(values) -> float:
+    """The mean of the values that are not NaN (NaN, without a warning, when none is)."""
+    array = np.asarray(list(values), dtype=np.float64)
+    kept = array[~np.isnan(array)]
+    return float(kept.mean()) if kept.size else float("nan")
 
 
 def _figure(value: float) -> str:
@@ -255,8 +265,7 @@ def format_summary(scores: list[SnapshotScore], settings: PredictorEvaluationCon
     IoU (G's margin over it), and the AUROC of the variance as a detector of G's errors."""
     metres = settings.near_known_cells * RESOLUTION_M
 
-    def mean(values) -> float:
-        return float(np.nanmean(list(values)))
+    mean = _nanmean
 
     g = [mean(getattr(s, part).iou_g for s in scores) for part in ("all", "near", "far")]
     ref = [mean(getattr(s, part).iou_reference for s in scores) for part in ("all", "near", "far")]
@@ -344,10 +353,10 @@ def _groups(scores: list[SnapshotScore]) -> list[tuple[tuple[str, int | str], li
 def _means(cells: list[CellScores]) -> tuple[float, float, float, float]:
     """Mean IoUs (G, classical, unknown = free) and mean AUROC (NaNs skipped)."""
     return (
-        float(np.mean([c.iou_g for c in cells])),
-        float(np.mean([c.iou_classical for c in cells])),
-        float(np.mean([c.iou_unknown_free for c in cells])),
-        float(np.nanmean([c.auroc for c in cells])),
+        float(_nanmean([c.iou_g for c in cells])),
+        float(_nanmean([c.iou_classical for c in cells])),
+        float(_nanmean([c.iou_unknown_free for c in cells])),
+        float(_nanmean([c.auroc for c in cells])),
     )
 
 

@@ -118,15 +118,28 @@ def masked_loss(
     mask: torch.Tensor,
     wall_weight: float,
     soft_iou_weight: float = 0.0,
+    far_soft_iou_weight: float = 0.0,
+    far_mask: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Binary cross-entropy over the masked cells, walls weighted by `wall_weight`, plus
-    `soft_iou_weight` times `soft_iou_loss`."""
+    `soft_iou_weight` times `soft_iou_loss`, plus `far_soft_iou_weight` times the soft IoU
+    loss over `far_mask` (the masked cells far from the known ones)."""
     weights = mask * (1.0 + (wall_weight - 1.0) * walls)
     losses = F.binary_cross_entropy_with_logits(logits, walls, reduction="none")
     loss = (losses * weights).sum() / weights.sum().clamp_min(1.0)
     if soft_iou_weight:
         loss = loss + soft_iou_weight * soft_iou_loss(logits, walls, mask)
+    if far_soft_iou_weight and far_mask is not None:
+        loss = loss + far_soft_iou_weight * soft_iou_loss(logits, walls, far_mask)
     return loss
+
+
+def far_from_known(inputs: torch.Tensor, mask: torch.Tensor, far_cells: int) -> torch.Tensor:
+    """The cells of `mask` more than `far_cells` (Chebyshev) from every known cell of the
+    crop, from the one-hot `inputs` (free, occupied, unknown channels)."""
+    known = inputs[:, :2].sum(dim=1, keepdim=True).clamp_max(1.0)
+    near = F.max_pool2d(known, 2 * far_cells + 1, stride=1, padding=far_cells)
+    return mask * (1.0 - near)
 
 
 def soft_iou_loss(logits: torch.Tensor, walls: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -151,6 +164,7 @@ class _Schedule:
     seed: int  # of the weights' random draws and of the batch stream
     checkpoint: Path
     sources: tuple[str, ...] = SOURCES  # whose crops it trains on
+    far_soft_iou_weight: float = 0.0  # of the soft IoU over the cells far from known ones
 
 
 def train_member(
@@ -216,6 +230,7 @@ def polish_main(
         "polish_steps": config.main_polish_steps,
         "polish_runs": config.polish_runs,
         "polish_soft_iou_weight": config.polish_soft_iou_weight,
+        "polish_far_soft_iou_weight": config.polish_far_soft_iou_weight,
         "polish_wall_time_s": round(wall_time_s, 1),
         "polish_training_config": dataclasses.asdict(config),  # may differ from G's base
     }
@@ -234,6 +249,7 @@ def _polish_schedule(config: PredictorTrainingConfig, out_dir: Path, run: int) -
         seed=config.seed + len(MEMBER_NAMES) + run,
         checkpoint=out_dir / "checkpoints" / f"g-polish{suffix}.ckpt",
         sources=config.polish_sources,
+        far_soft_iou_weight=config.polish_far_soft_iou_weight,
     )
 
 
@@ -293,7 +309,13 @@ def _fit(
         inputs, walls, masks = (a.to(device, non_blocking=True) for a in batch)
         with autocast(device, config.precision):
             logits = model(inputs).float()
-        loss = masked_loss(logits, walls, masks, schedule.wall_weight, schedule.soft_iou_weight)
+        far = None
+        if schedule.far_soft_iou_weight:
+            far = far_from_known(inputs, masks, config.far_cells)
+        loss = masked_loss(
+            logits, walls, masks, schedule.wall_weight, schedule.soft_iou_weight,
+            schedule.far_soft_iou_weight, far,
+        )  # fmt: skip
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -551,6 +573,8 @@ def _check_sources(members: list[int], config: PredictorTrainingConfig, specs: l
     """Refuse, before any work, a by-source split in which a member has no data, and a
     polish with no office-like data."""
     present = {world_source(spec_name(spec)) for spec in specs}
+    for k in range(1, len(MEMBER_NAMES)):  # a bad setting is an error whatever the split
+        member_source_set(config.member_sources, k)
     wanted = [("polish", config.polish_sources)] if 0 in members else []
     if config.member_split == "by_source":
         wanted += [

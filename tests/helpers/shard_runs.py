@@ -21,8 +21,12 @@ RUN_DEADLINE_S = 600.0  # a whole run on a loaded 2-core machine takes well unde
 
 def evaluate_command(out: Path, *extra: str, campaign: Sequence[str] = CAMPAIGN) -> list[str]:
     """`python -m services.evaluate` of `campaign` into `out`, without a progress bar."""
-    return [sys.executable, "-m", "services.evaluate", *campaign, "--out", str(out),
-            "--no-progress", *extra]  # fmt: skip
+    return [sys.executable, "-m", *evaluate_case(out, *extra, campaign=campaign)]
+
+
+def evaluate_case(out: Path, *extra: str, campaign: Sequence[str] = CAMPAIGN) -> list[str]:
+    """`evaluate_command` as a case of commands_at_once.run_python_m (no interpreter)."""
+    return ["services.evaluate", *campaign, "--out", str(out), "--no-progress", *extra]
 
 
 def shard_commands(

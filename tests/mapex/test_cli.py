@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import pytest
+from commands_at_once import run_python_m
 
 from mapex.cli import main
 
@@ -72,42 +73,50 @@ def test_a_method_that_does_not_coordinate_runs_as_a_team_sharing_one_map(tmp_pa
     assert metrics["method"] == "nearest" and metrics["team"]["robots"] == 2
 
 
+BAD_INPUT = [
+    (["--world", "/no/such/map"], "/no/such/map"),
+    (["--world", "generated:abc"], "abc"),
+    (["--method", "best"], "invalid choice"),
+    (["--steps", "0"], "--steps"),
+    (["--steps", "au"], "--steps must be a whole number or 'auto'"),
+    (["--until-iou", "1.5"], "--until-iou must be in (0, 1]"),
+    (["--set", "until_iou=-1"], "until_iou must be in (0, 1]"),
+    (["--set", "visibility.nosuch=1"], "nosuch"),
+    (["--start", "7"], "corners are 0-3"),
+    (["--start", "1,x"], "expected a corner 0-3 or a cell ROW,COL"),
+    (["--start", "0,0"], "world 'generated:0': start cell (0, 0) is on a wall"),
+    (["--start", "9000,40"], "start cell (9000, 40) is outside the map"),
+    (["--precision", "float16"], "invalid choice"),
+    (["--predictor", "classical", "--precision", "bfloat16"], "only the 'lama' predictor"),
+    (["--predictor", "oracle", "--views", "1"], "only the 'lama' predictors"),
+    (["--set", "world.max_cells=1000"], "above the limit of 1,000"),
+    (["--robots", "0", "--method", "mapex_team"], "--robots must be at least 1"),
+    (["--robots", "0"], "--robots must be at least 1"),
+    (["--robots", "x"], "invalid int value"),
+    (["--robots", "100000", "--method", "nearest_team"], "more than team.max_robots (64)"),
+    (["--set", "sensor=1"], "override 'sensor=1': a section takes no value"),
+    (["--set", "sensor.n_rays=0"], "sensor.n_rays must be in [1, 100000], got 0"),
+    (["--set", "motion.cells_per_step=0"], "motion.cells_per_step must be in [1, 65535]"),
+    (["--seed", "-1"], "seed -1 is out of range"),
+    (
+        ["--robots", "3", "--method", "nearest_team", "--set", "team.spacing_cells=5000"],
+        "room for 1 robots 5000 cells apart",
+    ),
+]
+
+
+@pytest.fixture(scope="module")
+def bad_input_runs() -> dict[tuple[str, ...], subprocess.CompletedProcess]:
+    """`python -m mapex run` with each of BAD_INPUT, all run at once (each only parses and
+    fails)."""
+    cases = [["mapex", "run", "--no-progress", *args] for args, _ in BAD_INPUT]
+    return dict(zip((tuple(args) for args, _ in BAD_INPUT), run_python_m(cases), strict=True))
+
+
 @pytest.mark.slow  # runs the command in a process of its own
-@pytest.mark.parametrize(
-    "args, message",
-    [
-        (["--world", "/no/such/map"], "/no/such/map"),
-        (["--world", "generated:abc"], "abc"),
-        (["--method", "best"], "invalid choice"),
-        (["--steps", "0"], "--steps"),
-        (["--steps", "au"], "--steps must be a whole number or 'auto'"),
-        (["--until-iou", "1.5"], "--until-iou must be in (0, 1]"),
-        (["--set", "until_iou=-1"], "until_iou must be in (0, 1]"),
-        (["--set", "visibility.nosuch=1"], "nosuch"),
-        (["--start", "7"], "corners are 0-3"),
-        (["--start", "1,x"], "expected a corner 0-3 or a cell ROW,COL"),
-        (["--start", "0,0"], "world 'generated:0': start cell (0, 0) is on a wall"),
-        (["--start", "9000,40"], "start cell (9000, 40) is outside the map"),
-        (["--precision", "float16"], "invalid choice"),
-        (["--predictor", "classical", "--precision", "bfloat16"], "only the 'lama' predictor"),
-        (["--predictor", "oracle", "--views", "1"], "only the 'lama' predictors"),
-        (["--set", "world.max_cells=1000"], "above the limit of 1,000"),
-        (["--robots", "0", "--method", "mapex_team"], "--robots must be at least 1"),
-        (["--robots", "0"], "--robots must be at least 1"),
-        (["--robots", "x"], "invalid int value"),
-        (["--robots", "100000", "--method", "nearest_team"], "more than team.max_robots (64)"),
-        (["--set", "sensor=1"], "override 'sensor=1': a section takes no value"),
-        (["--set", "sensor.n_rays=0"], "sensor.n_rays must be in [1, 100000], got 0"),
-        (["--set", "motion.cells_per_step=0"], "motion.cells_per_step must be in [1, 65535]"),
-        (["--seed", "-1"], "seed -1 is out of range"),
-        (
-            ["--robots", "3", "--method", "nearest_team", "--set", "team.spacing_cells=5000"],
-            "room for 1 robots 5000 cells apart",
-        ),
-    ],
-)
-def test_bad_input_gives_one_line_error(args, message):
-    done = run_cli("run", "--no-progress", *args)
+@pytest.mark.parametrize("args, message", BAD_INPUT)
+def test_bad_input_gives_one_line_error(args, message, bad_input_runs):
+    done = bad_input_runs[tuple(args)]
     assert done.returncode == 2
     assert "Traceback" not in done.stderr
     error_lines = [line for line in done.stderr.splitlines() if "error" in line]

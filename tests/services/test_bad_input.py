@@ -5,16 +5,13 @@ each one line on stderr and exit 2, before any process starts or any data is rea
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
-from service_processes import REPO_ROOT, free_loopback_port
+from commands_at_once import run_python_m
+from service_processes import free_loopback_port
 
 FORGED_SHAPE = (200_000, 200_000)  # 40 GB of uint8 claimed by a 100-byte file
-AT_ONCE = 4  # commands run side by side (each only starts Python and fails)
 COMMAND_TIMEOUT_S = 120  # a command that reads /dev/zero or waits on a FIFO runs into this
 
 
@@ -102,22 +99,19 @@ CASES = {
 }
 
 
-def run_command(args: list[str], inputs: dict[str, str]) -> subprocess.CompletedProcess:
+def command_case(args: list[str], inputs: dict[str, str]) -> list[str]:
+    """`python -m` MODULE and its arguments (a case of run_python_m)."""
     module, *rest = [arg.format(**inputs) for arg in args]
     if module in ("services.up", "services.evaluate", "services.world"):
         rest += _listen()
     if module in ("services.up", "services.evaluate"):
         rest += ["--out", inputs["out"]]
-    return subprocess.run(
-        [sys.executable, "-m", module, *rest], cwd=REPO_ROOT, capture_output=True, text=True,
-        timeout=COMMAND_TIMEOUT_S,
-    )  # fmt: skip
+    return [module, *rest]
 
 
 def test_bad_input_is_one_line_and_exit_2_on_every_command(inputs):
-    with ThreadPoolExecutor(AT_ONCE) as pool:
-        done = {name: pool.submit(run_command, args, inputs) for name, (args, _) in CASES.items()}
-        results = {name: future.result() for name, future in done.items()}
+    cases = [command_case(args, inputs) for args, _ in CASES.values()]
+    results = dict(zip(CASES, run_python_m(cases, timeout_s=COMMAND_TIMEOUT_S), strict=True))
     wrong = []
     for name, (_, expected) in CASES.items():
         completed = results[name]

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import re
 import shutil
 import signal
@@ -16,6 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
+from commands_at_once import run_python_m
 from service_processes import REPO_ROOT, free_loopback_port, until
 from shard_runs import comparable_tables, pool_warnings, run_records
 from up_processes import pid_alive
@@ -157,7 +157,7 @@ def test_an_oracle_evaluation_serves_each_planner_s_world_to_its_worker(tmp_path
     records = run_records(out)
     assert set(records) == {
         "generated_0-mapex@oracle-start0-seed0",
-        "generated_0-nearest-start0-seed0",
+        "generated_0-nearest@oracle-start0-seed0",
     }
     oracle = records["generated_0-mapex@oracle-start0-seed0"]
     assert oracle["predictor"] == "oracle" and oracle["degraded_steps"] == []
@@ -340,21 +340,29 @@ NO_PROGRESS = NoProgress()
 
 
 def test_a_killed_and_resumed_evaluation_gives_the_same_table(tmp_path):
+    """The evaluation whole (its own hub and pool) runs beside the killed and the resumed
+    one: only its table is compared, at the end."""
     whole, resumed = tmp_path / "whole", tmp_path / "resumed"
     with open(tmp_path / "whole.log", "wb") as log:
-        assert evaluate(whole, "--no-report", log=log).wait(600) == 0
-    with open(tmp_path / "killed.log", "wb") as log:
-        first = evaluate(resumed, "--no-report", log=log)
-        try:
-            until(lambda: run_records(resumed), "a first published run", 300)
-        finally:
-            first.send_signal(signal.SIGKILL)
-            first.wait(10)
-    children = [int(pid) for pid in _started_pids(tmp_path / "killed.log")]
-    until(lambda: not any(pid_alive(pid) for pid in children), "the orphans to stop", 30)
-    published = run_records(resumed)
-    with open(tmp_path / "resumed.log", "wb") as log:
-        assert evaluate(resumed, log=log).wait(600) == 0
+        uninterrupted = evaluate(whole, "--no-report", log=log)
+    try:
+        with open(tmp_path / "killed.log", "wb") as log:
+            first = evaluate(resumed, "--no-report", log=log)
+            try:
+                until(lambda: run_records(resumed), "a first published run", 300)
+            finally:
+                first.send_signal(signal.SIGKILL)
+                first.wait(10)
+        children = [int(pid) for pid in _started_pids(tmp_path / "killed.log")]
+        until(lambda: not any(pid_alive(pid) for pid in children), "the orphans to stop", 30)
+        published = run_records(resumed)
+        with open(tmp_path / "resumed.log", "wb") as log:
+            assert evaluate(resumed, log=log).wait(600) == 0
+        assert uninterrupted.wait(600) == 0
+    finally:
+        if uninterrupted.poll() is None:
+            uninterrupted.kill()
+            uninterrupted.wait()
     after = run_records(resumed)
     assert {name: after[name] for name in published} == published  # kept, not run again
     logs = [tmp_path / name for name in ("whole.log", "killed.log", "resumed.log")]
@@ -375,46 +383,60 @@ def _started_pids(log_path) -> list[str]:
     return re.findall(r"started \S+ \(pid (\d+)\)", log_path.read_text(errors="replace"))
 
 
-@pytest.mark.parametrize(
-    ("args", "message"),
-    [
-        (["--maps", "/no/such/map"], "no such map directory"),
-        (["--maps", "generated:0", "--methods", "nearest,bogus"], "unknown method"),
-        (["--maps", "generated:0", "--jobs", "0"], "--jobs must be at least 1"),
-        (["--maps", "generated:0", "--steps", "-1"], "--steps must be at least 1"),
-        (["--maps", "generated:0", "--steps", "1e3"], "--steps must be a whole number"),
-        (["--maps", "generated:0", "--until-iou", "0"], "--until-iou must be in (0, 1]"),
-        (["--maps", "generated:0", "--robots", "2"], "--robots 2 needs a team method"),
-        (
-            ["--maps", "generated:0", "--methods", "mapex_team", "--robots", "0"],
-            "--robots must be at least 1",
-        ),
-        (["--maps", "generated:0", "--starts", "7"], "start poses 0-3"),
-        (["--maps", "generated:0", "--set", "world.max_cells=1000"], "above the limit of 1,000"),
-        (["--maps", "generated:0", "--starts-file", "{file}"], "map 'generated:0' needs a"),
-        (["--maps", "generated:1", "--starts-file", "{walls}"], "no starts for map 'generated:1'"),
-        (["--maps", "generated:0", "--starts-file", "{missing}"], "No such file"),
-        (["--maps", "generated:0", "--starts-file", "{walls}"], "start cell (0, 0) is on a wall"),
-        (["--maps", "generated:0", "--predictor", "classical"], "runs in one process only"),
-        (
-            ["--maps", "generated:0", "--predictor", "oracle", "--members", "g1"],
-            "served by member g only",
-        ),
-    ],
-)
-def test_bad_arguments_fail_in_one_line(args, message, tmp_path):
-    (tmp_path / "bad.json").write_text('{"generated:0": [[1, 2, 3]]}')
-    (tmp_path / "walls.json").write_text('{"generated:0": [[0, 0]]}')
+BAD_ARGUMENTS = [
+    (["--maps", "/no/such/map"], "no such map directory"),
+    (["--maps", "generated:0", "--methods", "nearest,bogus"], "unknown method"),
+    (["--maps", "generated:0", "--jobs", "0"], "--jobs must be at least 1"),
+    (["--maps", "generated:0", "--steps", "-1"], "--steps must be at least 1"),
+    (["--maps", "generated:0", "--steps", "1e3"], "--steps must be a whole number"),
+    (["--maps", "generated:0", "--until-iou", "0"], "--until-iou must be in (0, 1]"),
+    (["--maps", "generated:0", "--robots", "2"], "--robots 2 needs a team method"),
+    (
+        ["--maps", "generated:0", "--methods", "mapex_team", "--robots", "0"],
+        "--robots must be at least 1",
+    ),
+    (["--maps", "generated:0", "--starts", "7"], "start poses 0-3"),
+    (["--maps", "generated:0", "--set", "world.max_cells=1000"], "above the limit of 1,000"),
+    (["--maps", "generated:0", "--starts-file", "{file}"], "map 'generated:0' needs a"),
+    (["--maps", "generated:1", "--starts-file", "{walls}"], "no starts for map 'generated:1'"),
+    (["--maps", "generated:0", "--starts-file", "{missing}"], "No such file"),
+    (["--maps", "generated:0", "--starts-file", "{walls}"], "start cell (0, 0) is on a wall"),
+    (["--maps", "generated:0", "--predictor", "classical"], "runs in one process only"),
+    (
+        ["--maps", "generated:0", "--predictor", "oracle", "--members", "g1"],
+        "served by member g only",
+    ),
+]
+
+
+@pytest.fixture(scope="module")
+def bad_argument_runs(
+    tmp_path_factory,
+) -> dict[tuple[str, ...], tuple[Path, subprocess.CompletedProcess]]:
+    """`python -m services.evaluate` with each of BAD_ARGUMENTS ({file}, {missing} and {walls}:
+    starts files), all run at once (each only parses and fails), each with an --out and
+    a hub port of its own: {args: (its --out, its run)}."""
+    root = tmp_path_factory.mktemp("bad-arguments")
+    (root / "bad.json").write_text('{"generated:0": [[1, 2, 3]]}')
+    (root / "walls.json").write_text('{"generated:0": [[0, 0]]}')
     names = {"file": "bad.json", "missing": "none.json", "walls": "walls.json"}
-    args = [a.format(**{k: tmp_path / v for k, v in names.items()}) for a in args]
-    completed = subprocess.run(
-        [sys.executable, "-m", "services.evaluate", *args, "--out", str(tmp_path / "out")],
-        cwd=REPO_ROOT, capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+    outs = [root / f"out-{k}" for k in range(len(BAD_ARGUMENTS))]
+    cases = [
+        ["services.evaluate", *(a.format(**{k: root / v for k, v in names.items()}) for a in args),
+         "--out", str(out), "--listen", f"tcp/127.0.0.1:{free_loopback_port()}"]
+        for (args, _), out in zip(BAD_ARGUMENTS, outs, strict=True)
+    ]  # fmt: skip
+    runs = zip(outs, run_python_m(cases), strict=True)
+    return dict(zip((tuple(args) for args, _ in BAD_ARGUMENTS), runs, strict=True))
+
+
+@pytest.mark.parametrize(("args", "message"), BAD_ARGUMENTS)
+def test_bad_arguments_fail_in_one_line(args, message, bad_argument_runs):
+    out, completed = bad_argument_runs[tuple(args)]
     assert completed.returncode == 2, completed.stderr
     assert message in completed.stderr.strip().splitlines()[-1]
     assert "Traceback" not in completed.stderr
-    assert os.path.exists(tmp_path) and not (tmp_path / "out").exists()
+    assert out.parent.exists() and not out.exists()
 
 
 def test_a_bad_out_is_refused_before_any_episode(tmp_path):

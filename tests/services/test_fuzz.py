@@ -7,24 +7,25 @@ each is mutated at the msgpack level (a field dropped, retyped, made huge, negat
 an array header lying about its shape or dtype, another type or schema) or at the byte
 level (flips, truncation, junk appended), and sent to a key a service listens on: a query
 to every queryable, a put to every subscribed topic. Bounded in count and in time.
+
+The same episode in one process, which the run must equal, is computed beside the run (a
+`python -m mapex run` child) rather than after it: tens of seconds of CPU on this floor.
 """
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import msgpack
 import numpy as np
-import torch
-from service_processes import free_loopback_port, until
-from up_processes import UpProcess, read_run
+from service_processes import REPO_ROOT, free_loopback_port, until
+from up_processes import RUN_DEADLINE_S, UpProcess, read_run
 
-from mapex.config import ExplorationConfig
-from mapex.episode import run_episode
 from mapex.grid import FREE, UNKNOWN
-from mapex.prediction.learned import LearnedEnsemble
-from mapex.results import write_results
-from mapex.worlds import load_world
 from services.keys import (
     ROBOT_TOPICS,
     alive_planner_key,
@@ -156,6 +157,18 @@ def answering(session) -> bool:
     return len(workers) == 4
 
 
+def start_alone(world_spec: str, out: Path, log_path: Path) -> subprocess.Popen:
+    """The episode in one process (`python -m mapex run`: corner 0, seed 0, the default
+    settings and ensemble, as the run's) with one torch thread, as a worker computes."""
+    command = [sys.executable, "-m", "mapex", "run", "--world", world_spec, "--method", METHOD,
+               "--steps", str(STEPS), "--out", str(out), "--no-progress"]  # fmt: skip
+    environment = {**os.environ, "OMP_NUM_THREADS": "1"}  # torch's threads
+    with open(log_path, "wb") as log:
+        return subprocess.Popen(
+            command, cwd=REPO_ROOT, stdout=log, stderr=subprocess.STDOUT, env=environment
+        )
+
+
 def test_thousands_of_mutated_messages_on_every_key_harm_no_process_and_no_result(
     tmp_path, kth_dev_dir
 ):
@@ -165,6 +178,7 @@ def test_thousands_of_mutated_messages_on_every_key_harm_no_process_and_no_resul
         tmp_path / "up.log", "--world", world_spec, "--listen", endpoint, "--run-prefix", "fuzz",
         "--out", str(tmp_path / "runs"), "--method", METHOD, "--steps", str(STEPS),
     )  # fmt: skip
+    alone = start_alone(world_spec, tmp_path / "in_process", tmp_path / "in_process.log")
     session = open_session(zenoh_config(connect=[endpoint], listen=[]))
     try:
         until(
@@ -185,20 +199,16 @@ def test_thousands_of_mutated_messages_on_every_key_harm_no_process_and_no_resul
         assert up.process.poll() is None, "the run ended before the fuzz did: make it longer"
         assert answering(session), up.log()
         assert up.wait() == 0, up.log()
+        assert alone.wait(RUN_DEADLINE_S) == 0, (tmp_path / "in_process.log").read_text()
     finally:
         session.close()
         up.kill()
+        if alone.poll() is None:
+            alone.kill()
+            alone.wait()
     log = up.log()
     assert "restarted" not in log and "Traceback" not in log, log[-5000:]
     metrics, trajectory, curves = read_run(tmp_path / "runs" / f"{RUN}-r0")
-    world = load_world(world_spec)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # as one worker computes
-    try:
-        config = ExplorationConfig(steps=STEPS)
-        alone = run_episode(world, METHOD, LearnedEnsemble(), 0, 0, config)
-    finally:
-        torch.set_num_threads(threads)
-    expected = read_run(write_results(alone, world, tmp_path / "in_process"))
+    expected = read_run(tmp_path / "in_process")
     np.testing.assert_array_equal(trajectory, expected[1])
     assert metrics["auc"]["coverage"] == expected[0]["auc"]["coverage"]

@@ -8,8 +8,10 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
+from commands_at_once import run_python_m
 from service_processes import (
     REPO_ROOT,
     ServiceProcesses,
@@ -22,6 +24,7 @@ from shard_runs import (
     CAMPAIGN,
     any_degraded,
     comparable_tables,
+    evaluate_case,
     evaluate_command,
     pool_warnings,
     run_commands,
@@ -41,15 +44,28 @@ def run(command: list[str]) -> subprocess.CompletedProcess:
     return subprocess.run(command, cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
 
 
-@pytest.mark.parametrize(
-    "value", ["3/3", "-1/2", "a/b", "0/0", "1", "2/1", "", "1/2/3", "99999999999/100000000000"]
-)
-def test_a_bad_shard_is_one_line_and_exit_2(tmp_path, value):
-    completed = run(evaluate_command(tmp_path / "out", f"--shard={value}"))
+BAD_SHARDS = ["3/3", "-1/2", "a/b", "0/0", "1", "2/1", "", "1/2/3", "99999999999/100000000000"]
+
+
+@pytest.fixture(scope="module")
+def bad_shard_runs(tmp_path_factory) -> dict[str, tuple[Path, subprocess.CompletedProcess]]:
+    """The evaluation with each of BAD_SHARDS, all run at once (each only parses and fails),
+    each with an --out of its own: {value: (its --out, its run)}."""
+    root = tmp_path_factory.mktemp("bad-shards")
+    outs = [root / f"out-{k}" for k in range(len(BAD_SHARDS))]
+    cases = [
+        evaluate_case(out, f"--shard={value}") for value, out in zip(BAD_SHARDS, outs, strict=True)
+    ]
+    return dict(zip(BAD_SHARDS, zip(outs, run_python_m(cases), strict=True), strict=True))
+
+
+@pytest.mark.parametrize("value", BAD_SHARDS)
+def test_a_bad_shard_is_one_line_and_exit_2(value, bad_shard_runs):
+    out, completed = bad_shard_runs[value]
     assert completed.returncode == 2, completed.stderr
     lines = completed.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("services.evaluate: error: --shard"), lines
-    assert not (tmp_path / "out").exists()
+    assert out.parent.exists() and not out.exists()
 
 
 def test_shards_that_share_a_folder_must_be_of_one_campaign(tmp_path):
@@ -61,14 +77,15 @@ def test_shards_that_share_a_folder_must_be_of_one_campaign(tmp_path):
     assert json.loads((out / CAMPAIGN_FILE).read_text())["shards"] == 6
     assert json.loads((out / "evaluations.jsonl").read_text().splitlines()[-1])["shard"] == "4/6"
     other_steps = [*CAMPAIGN[:-1], "40"]
-    for command, problem in [
-        (evaluate_command(out, "--shard", "5/7"), "split into 6 shard(s), not 7"),
-        (evaluate_command(out, "--shard", "5/6", "--set", "motion.cells_per_step=2"),
+    refused = [
+        (evaluate_case(out, "--shard", "5/7"), "split into 6 shard(s), not 7"),
+        (evaluate_case(out, "--shard", "5/6", "--set", "motion.cells_per_step=2"),
          "another motion.cells_per_step (3, not 2)"),
-        (evaluate_command(out, "--shard", "5/6", campaign=other_steps), "60 steps, not 40"),
-        (evaluate_command(out), "split into 6 shard(s), not 1"),  # the whole, unsharded
-    ]:  # fmt: skip
-        completed = run(command)
+        (evaluate_case(out, "--shard", "5/6", campaign=other_steps), "60 steps, not 40"),
+        (evaluate_case(out), "split into 6 shard(s), not 1"),  # the whole, unsharded
+    ]  # fmt: skip
+    runs = run_python_m([case for case, _ in refused])  # none writes: they may run at once
+    for (_, problem), completed in zip(refused, runs, strict=True):
         assert completed.returncode == 2, completed.stderr
         lines = completed.stderr.strip().splitlines()
         assert len(lines) == 1 and problem in lines[0] and "another --out" in lines[0], lines
@@ -108,17 +125,21 @@ def report(*args: str) -> None:
 
 def test_an_experiment_run_in_shards_and_merged_equals_it_run_whole(tmp_path):
     whole = tmp_path / "whole"
-    listen = f"tcp/127.0.0.1:{free_loopback_port()}"
-    assert run_commands([evaluate_command(whole, "--listen", listen)], tmp_path, "whole") == [0]
     # three shards at once on this machine, each with its own workers and its own hub
     separate = [tmp_path / f"shard-{k}" for k in range(3)]
     assert run_commands(shard_commands(separate, 3), tmp_path, "separate") == [0, 0, 0]
-    # three shards at once into one folder, on one shared pool (`--members none`)
+    # three shards at once into one folder, on one shared pool (`--members none`), and
+    # beside them the experiment whole, with its own workers and hub
     shared = tmp_path / "shared"
     router, pool, endpoint = start_pool(tmp_path)
     try:
         joined = ("--mode", "client", "--connect", endpoint, "--members", "none")
-        assert run_commands(shard_commands(shared, 3, *joined), tmp_path, "shared") == [0, 0, 0]
+        listen = f"tcp/127.0.0.1:{free_loopback_port()}"
+        commands = [
+            *shard_commands(shared, 3, *joined),
+            evaluate_command(whole, "--listen", listen),
+        ]
+        assert run_commands(commands, tmp_path, "shared+whole") == [0, 0, 0, 0]
     finally:
         pool.kill_all()
         kill_router(router)

@@ -36,16 +36,21 @@ def test_short_runs_end_with_every_child_stopping_on_its_own(tmp_path, monkeypat
     (marker / "sitecustomize.py").write_text(SITECUSTOMIZE)
     paths = [str(marker), *filter(None, [os.environ.get("PYTHONPATH")])]
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join(paths))  # up and every child it starts
-    for run in range(RUNS):
-        up = UpProcess(
-            tmp_path / f"up{run}.log", "--steps", str(STEPS), "--run-prefix", f"end{run}",
-            "--listen", f"tcp/127.0.0.1:{free_loopback_port()}", "--out", str(tmp_path / "runs"),
-            "--set", f"services.stop_grace_s={GRACE_S}",
-        )  # fmt: skip
-        try:
+    ups = []  # the runs go side by side: each stops on a machine loaded by the others
+    try:
+        for run in range(RUNS):
+            up = UpProcess(
+                tmp_path / f"up{run}.log", "--steps", str(STEPS), "--run-prefix", f"end{run}",
+                "--listen", f"tcp/127.0.0.1:{free_loopback_port()}",
+                "--out", str(tmp_path / "runs"), "--set", f"services.stop_grace_s={GRACE_S}",
+            )  # fmt: skip
+            ups.append(up)
+        for up in ups:
             assert up.wait() == 0, up.log()
-        finally:
+    finally:
+        for up in ups:
             up.kill()
+    for run, up in enumerate(ups):
         log = up.log()
         assert "killed" not in log and "SIGKILL" not in log, log
         codes = {stopped or exited: int(a or b) for stopped, a, exited, b in EXITED.findall(log)}

@@ -21,6 +21,7 @@ import msgpack
 import numpy as np
 import pytest
 import torch
+from commands_at_once import run_python_m
 from service_processes import (
     REPO_ROOT,
     STOP_DEADLINE_S,
@@ -33,7 +34,7 @@ from service_processes import (
 from up_processes import UpProcess, pid_alive, read_run
 
 from mapex.budget import auto_steps, resolve_steps
-from mapex.config import ExplorationConfig
+from mapex.config import ExplorationConfig, apply_overrides
 from mapex.episode import run_episode
 from mapex.prediction.learned import LearnedEnsemble
 from mapex.prediction.oracle import OraclePredictor
@@ -109,7 +110,9 @@ def middle_start_cell() -> tuple[int, int]:
 
 
 def test_distributed_run_equals_in_process_run_and_a_viewer_sees_its_maps(tmp_path):
-    steps, start = 200, middle_start_cell()
+    """120 steps: several re-plans, G's metric samples at 0, 50 and 100, and TU at 0 and 100
+    (each a query of the pool, or of the in-process ensemble)."""
+    steps, start = 120, middle_start_cell()
     up, endpoint = start_up(
         tmp_path, "same", "--method", "mapex", "--steps", str(steps),
         "--start", f"{start[0]},{start[1]}",
@@ -186,9 +189,12 @@ def test_a_distributed_oracle_run_equals_the_in_process_one(tmp_path):
     ],
 )
 def test_a_team_through_services_up_equals_the_in_process_team(tmp_path, method):
-    steps = 200
+    """The robots start side by side, so claims and poses steer them from the first re-plan:
+    100 steps are several re-plans each, with the snapshot taken at the last step."""
+    steps = 100
+    snapshot = f"metrics.snapshot_steps={steps}"
     up, _ = start_up(tmp_path, "team", "--method", method, "--robots", "2",
-                     "--steps", str(steps))  # fmt: skip
+                     "--steps", str(steps), "--set", snapshot)  # fmt: skip
     try:
         assert up.wait() == 0, up.log()
     finally:
@@ -197,7 +203,7 @@ def test_a_team_through_services_up_equals_the_in_process_team(tmp_path, method)
     torch.set_num_threads(1)
     try:
         world = load_world(WORLD)
-        config = ExplorationConfig(steps=steps)
+        config = apply_overrides(ExplorationConfig(steps=steps), [snapshot])
         expected = run_episode(world, method, LearnedEnsemble(), 0, 0, config, robots=2)
     finally:
         torch.set_num_threads(threads)
@@ -213,8 +219,8 @@ def test_a_team_through_services_up_equals_the_in_process_team(tmp_path, method)
             expected.curves.coverage, abs=1e-6
         )
         with np.load(folder / "snapshots.npz") as snapshots:
-            assert list(snapshots["steps"]) == [200]
-            np.testing.assert_array_equal(snapshots["observed"][0], expected.snapshots[200][0])
+            assert list(snapshots["steps"]) == [steps]
+            np.testing.assert_array_equal(snapshots["observed"][0], expected.snapshots[steps][0])
         assert metrics["team"]["overlap"] == round(expected.overlap, 4)
 
 
@@ -291,8 +297,9 @@ def test_a_team_of_any_method_deploys_around_the_start_and_runs_go_round_the_cor
 def test_set_reaches_the_world_and_every_process_of_an_up_run(tmp_path):
     """`--set motion.cells_per_step=2` moves the robot 2 cells a step (the world simulated
     it, the planner agreed to it); `--set services.predict_timeout_s=20` is what the
-    planner, the world and the worker say they run with, and what the planner used."""
-    sets = set_flags([*SETTINGS, "services.predict_max_cells=1000", "services.workers_wait_s=15"])
+    planner, the world and the worker say they run with, and what the planner used. The
+    planner waits for g1-g3, which never come (`--members g`), only a second."""
+    sets = set_flags([*SETTINGS, "services.predict_max_cells=1000", "services.workers_wait_s=1"])
     up, _ = start_up(
         tmp_path, "set", "--method", "nearest", "--steps", "40", "--members", "g", *sets
     )
@@ -327,18 +334,22 @@ def kill_child_at_step(up: UpProcess, endpoint: str, run: str, child: str, step:
         session.close()
 
 
+KILL_STEPS = 400  # the run whose worker is killed at step KILL_AT: long past the restart
+KILL_AT = 100
+
+
 def test_a_worker_killed_mid_run_is_restarted_and_the_run_completes(tmp_path):
-    up, endpoint = start_up(tmp_path, "kill", "--method", "mapex", "--steps", "1000")
+    up, endpoint = start_up(tmp_path, "kill", "--method", "mapex", "--steps", str(KILL_STEPS))
     try:
-        kill_child_at_step(up, endpoint, "kill-0", "predictor-g", 100)
+        kill_child_at_step(up, endpoint, "kill-0", "predictor-g", KILL_AT)
         assert up.wait() == 0, up.log()
     finally:
         up.kill()
     metrics, trajectory, curves = read_run(tmp_path / "runs" / "kill-0-r0")
-    assert metrics["steps"] == 1000 and int(curves[-1][0]) == 1000
-    assert len(trajectory) == 1001 or metrics["finished_at"] is not None
+    assert metrics["steps"] == KILL_STEPS and int(curves[-1][0]) == KILL_STEPS
+    assert len(trajectory) == KILL_STEPS + 1 or metrics["finished_at"] is not None
     degraded = metrics["degraded_steps"] + metrics["degraded_metric_samples"]
-    assert degraded and min(degraded) >= 100, metrics
+    assert degraded and min(degraded) >= KILL_AT, metrics
     audit = dict(map(tuple, metrics["member_workers"]["replans"]))
     assert all("g" not in audit[t] and len(audit[t]) == 3 for t in metrics["degraded_steps"])
     assert "predictor-g exited with -9 (SIGKILL); restarted (1/" in up.log()
@@ -472,33 +483,41 @@ def test_an_auto_budget_run_ends_once_gs_iou_reaches_the_level(tmp_path):
     assert metrics["config"]["until_iou"] == 0.3
 
 
-@pytest.mark.parametrize(
-    ("args", "message"),
-    [
-        (["--steps", "0"], "--steps must be at least 1"),
-        (["--steps", "lots"], "--steps must be a whole number or 'auto'"),
-        (["--until-iou", "2"], "--until-iou must be in (0, 1]"),
-        (["--until-iou", "x"], "--until-iou must be a number in (0, 1]"),
-        (["--world", "/no/such/map"], "error"),
-        (["--members", "g,g9"], "unknown member"),
-        (["--run-prefix", "Bad Id"], "--run-prefix"),
-        (["--set", "sensor.nope=1"], "error"),
-        (["--start", "4"], "corners are 0-3"),
-        (["--start", "0,0"], "world 'generated:0': start cell (0, 0) is on a wall"),
-        (["--start", "0,0", "--robots", "2"], "start cell (0, 0) is on a wall"),
-        (["--robots", "3", "--set", "team.spacing_cells=5000"], "room for 1 robots 5000 cells"),
-        (["--set", "services.nope=1"], "override 'services.nope=1': unknown field 'nope'"),
-        (["--out", "README.md"], "cannot write results to README.md: it is a file"),
-        (["--set", "world.max_cells=1000"], "--set world.max_cells="),
-        (["--predictor", "classical"], "--predictor classical runs in one process only"),
-        (["--predictor", "oracle", "--members", "g,g1"], "served by member g only"),
-    ],
-)
-def test_bad_flags_fail_in_one_line(args, message):
-    completed = subprocess.run(
-        [sys.executable, "-m", "services.up", *args],
-        cwd=REPO_ROOT, capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+BAD_FLAGS = [
+    (["--steps", "0"], "--steps must be at least 1"),
+    (["--steps", "lots"], "--steps must be a whole number or 'auto'"),
+    (["--until-iou", "2"], "--until-iou must be in (0, 1]"),
+    (["--until-iou", "x"], "--until-iou must be a number in (0, 1]"),
+    (["--world", "/no/such/map"], "error"),
+    (["--members", "g,g9"], "unknown member"),
+    (["--run-prefix", "Bad Id"], "--run-prefix"),
+    (["--set", "sensor.nope=1"], "error"),
+    (["--start", "4"], "corners are 0-3"),
+    (["--start", "0,0"], "world 'generated:0': start cell (0, 0) is on a wall"),
+    (["--start", "0,0", "--robots", "2"], "start cell (0, 0) is on a wall"),
+    (["--robots", "3", "--set", "team.spacing_cells=5000"], "room for 1 robots 5000 cells"),
+    (["--set", "services.nope=1"], "override 'services.nope=1': unknown field 'nope'"),
+    (["--out", "README.md"], "cannot write results to README.md: it is a file"),
+    (["--set", "world.max_cells=1000"], "--set world.max_cells="),
+    (["--predictor", "classical"], "--predictor classical runs in one process only"),
+    (["--predictor", "oracle", "--members", "g,g1"], "served by member g only"),
+]
+
+
+@pytest.fixture(scope="module")
+def bad_flag_runs() -> dict[tuple[str, ...], subprocess.CompletedProcess]:
+    """`python -m services.up` with each of BAD_FLAGS, all run at once (each only parses
+    and fails), each serving its hub on a port of its own so that none meets another."""
+    cases = [
+        ["services.up", *args, "--listen", f"tcp/127.0.0.1:{free_loopback_port()}"]
+        for args, _ in BAD_FLAGS
+    ]
+    return dict(zip((tuple(args) for args, _ in BAD_FLAGS), run_python_m(cases), strict=True))
+
+
+@pytest.mark.parametrize(("args", "message"), BAD_FLAGS)
+def test_bad_flags_fail_in_one_line(args, message, bad_flag_runs):
+    completed = bad_flag_runs[tuple(args)]
     assert completed.returncode == 2
     lines = completed.stderr.strip().splitlines()
     assert message in lines[-1] and "Traceback" not in completed.stderr

@@ -24,6 +24,7 @@ import time
 import msgpack
 import numpy as np
 import pytest
+from commands_at_once import run_python_m
 from service_processes import (
     REPO_ROOT,
     STOP_DEADLINE_S,
@@ -501,34 +502,40 @@ def test_sigint_stops_the_world_cleanly(hub, worlds):
     assert "stopped after serving 0 scans" in log and "Traceback" not in log
 
 
-@pytest.mark.parametrize(
-    "flags, message",
-    [
-        (["--world", "generated:x"], "bad generated seed 'x'"),
-        (["--world", "{missing}"], "no such map directory"),
-        (["--starts", "7"], "corners are 0-3"),
-        (["--starts", "0,1"], "start cell (0, 1) is on a wall"),
-        (["--robots", "2", "--starts", "0"], "names 1 starts for 2 robots"),
-        (["--robots", "0"], "--robots must be at least 1"),
-        (["--run", "predict"], "--run 'predict' must match"),
-        (["--team", "2"], "unrecognized arguments: --team"),
-        (["--set", "sensor.nope=1"], "override 'sensor.nope=1': unknown field 'nope'"),
-        (["--set", "services.team_step_wait_s=soon"], "'soon' is not a valid float"),
-        (["--set", "motion.cells_per_step"], "is not of the form section.field=value"),
-        (["--set", "world.max_cells=100"], "cells (363 x 537), above the limit of 100:"),
-    ],
-)
-def test_bad_world_starts_and_flags_are_one_line_errors(flags, message, tmp_path):
-    flags = [f.format(missing=tmp_path / "none") for f in flags]
-    if "--run" not in flags:
-        flags += ["--run", "bad_flags"]
-    result = subprocess.run(
-        [sys.executable, "-m", "services.world", *flags, "--connect", "tcp/127.0.0.1:1"],
-        cwd=REPO_ROOT,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+BAD_WORLD_FLAGS = [
+    (["--world", "generated:x"], "bad generated seed 'x'"),
+    (["--world", "{missing}"], "no such map directory"),
+    (["--starts", "7"], "corners are 0-3"),
+    (["--starts", "0,1"], "start cell (0, 1) is on a wall"),
+    (["--robots", "2", "--starts", "0"], "names 1 starts for 2 robots"),
+    (["--robots", "0"], "--robots must be at least 1"),
+    (["--run", "predict"], "--run 'predict' must match"),
+    (["--team", "2"], "unrecognized arguments: --team"),
+    (["--set", "sensor.nope=1"], "override 'sensor.nope=1': unknown field 'nope'"),
+    (["--set", "services.team_step_wait_s=soon"], "'soon' is not a valid float"),
+    (["--set", "motion.cells_per_step"], "is not of the form section.field=value"),
+    (["--set", "world.max_cells=100"], "cells (363 x 537), above the limit of 100:"),
+]
+
+
+@pytest.fixture(scope="module")
+def bad_world_runs(tmp_path_factory) -> dict[tuple[str, ...], subprocess.CompletedProcess]:
+    """`python -m services.world` with each of BAD_WORLD_FLAGS ({missing}: a folder that is
+    not there), all run at once (each only parses and fails)."""
+    missing = tmp_path_factory.mktemp("bad-world-flags") / "none"
+    cases = []
+    for case, _ in BAD_WORLD_FLAGS:
+        flags = [f.format(missing=missing) for f in case]
+        if "--run" not in flags:
+            flags += ["--run", "bad_flags"]
+        cases.append(["services.world", *flags, "--connect", "tcp/127.0.0.1:1"])
+    runs = run_python_m(cases)
+    return dict(zip((tuple(flags) for flags, _ in BAD_WORLD_FLAGS), runs, strict=True))
+
+
+@pytest.mark.parametrize("flags, message", BAD_WORLD_FLAGS)
+def test_bad_world_starts_and_flags_are_one_line_errors(flags, message, bad_world_runs):
+    result = bad_world_runs[tuple(flags)]
     assert result.returncode == 2
     assert message in result.stderr and "Traceback" not in result.stderr
     assert sum(message in line for line in result.stderr.splitlines()) == 1

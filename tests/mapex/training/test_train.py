@@ -206,7 +206,7 @@ def test_members_use_their_own_loss_and_only_the_polish_adds_soft_iou(
 ):
     weights = []
     real_loss = train.masked_loss
-    monkeypatch.setattr(train, "masked_loss", lambda *a: weights.append(a[3:]) or real_loss(*a))
+    monkeypatch.setattr(train, "masked_loss", lambda *a: weights.append(a[3:5]) or real_loss(*a))
     config = dataclasses.replace(
         TINY, wall_weight=2.0, member_wall_weight=1.0, polish_soft_iou_weight=3.0
     )
@@ -256,8 +256,11 @@ def test_polishing_changes_g_but_not_the_base_its_members_start_from(snapshots, 
         polished["stem.1.weight"], base["stem.1.weight"]
     )
     _assert_same_weights(base_path, train.base_weights(tmp_path))  # left as it was
-    member = train._initial_model(1, TINY, tmp_path).state_dict()
+    from_main = dataclasses.replace(TINY, members_from_main=True)
+    member = train._initial_model(1, from_main, tmp_path).state_dict()
     torch.testing.assert_close(member["stem.1.weight"], base["stem.1.weight"], rtol=0, atol=0)
+    fresh = train._initial_model(1, dataclasses.replace(TINY, members_from_main=False), tmp_path)
+    assert not torch.equal(fresh.state_dict()["stem.1.weight"], base["stem.1.weight"])
     metadata = read_metadata(polished_path)
     assert metadata["steps"] == TINY.main_steps
     assert metadata["polish_steps"] == TINY.main_polish_steps
@@ -433,6 +436,8 @@ def test_a_few_steps_train_every_member_on_houseexpo_ipa_and_procedural_worlds(t
         "--set",
         "member_sources=houseexpo,ipa,procedural",
         "--set",
+        "member_split=by_source",
+        "--set",
         "snapshot_every_steps=10",
     ]
     argv = ["--out", str(tmp_path), "--no-kth", *tiny_overrides(), *sources]
@@ -496,3 +501,30 @@ def test_snapshots_are_kept_and_read_back_for_the_same_data_only(tmp_path, capsy
     other = dataclasses.replace(TINY, snapshot_every_steps=60)
     cached_snapshots(path, specs, other)
     assert "holds other snapshots" in capsys.readouterr().err
+
+
+def test_far_cells_are_those_beyond_far_cells_of_every_known_cell():
+    inputs = torch.zeros(1, 3, 30, 30)
+    inputs[0, 2] = 1.0  # all unknown
+    inputs[0, 2, 5, 5], inputs[0, 0, 5, 5] = 0.0, 1.0  # one known free cell
+    far = train.far_from_known(inputs, torch.ones(1, 1, 30, 30), far_cells=10)
+    assert far[0, 0, 15, 5] == 0 and far[0, 0, 16, 5] == 1  # 10 cells away is near
+    assert far[0, 0, 5, 15] == 0 and far[0, 0, 16, 16] == 1
+    assert far[0, 0, 5, 5] == 0
+
+
+def test_the_far_soft_iou_adds_a_loss_over_the_far_cells_only():
+    logits = torch.full((1, 1, 8, 8), -12.0)  # predicts no wall anywhere
+    walls = torch.zeros(1, 1, 8, 8)
+    walls[..., 6, :] = 1.0  # a wall in the far rows only
+    mask = torch.ones(1, 1, 8, 8)
+    far = torch.zeros(1, 1, 8, 8)
+    far[..., 5:, :] = 1.0
+    plain = train.masked_loss(logits, walls, mask, 2.0)
+    with_far = train.masked_loss(logits, walls, mask, 2.0, 0.0, 3.0, far)
+    assert with_far.item() == pytest.approx(plain.item() + 3 * (1 - 1 / 9), rel=1e-3)
+    near_only = torch.zeros_like(far)
+    near_only[..., :2, :] = 1.0  # no wall there, none predicted: nothing to add
+    assert train.masked_loss(logits, walls, mask, 2.0, 0.0, 3.0, near_only).item() == (
+        pytest.approx(plain.item(), rel=1e-3)
+    )

@@ -293,3 +293,17 @@ def test_check_floors_agree_with_the_authors_rasters(floor, kth_dev_dir) -> None
     theirs_near_ours, ours_near_theirs, valid_iou = agreement(floor, kth_dev_dir)
     assert theirs_near_ours >= 0.95 and ours_near_theirs >= 0.95
     assert valid_iou >= 0.90
+
+
+def test_a_gazebo_world_renders_to_a_png_from_the_command_line(tmp_path, capsys) -> None:
+    from mapex.worlds.__main__ import main
+
+    path = write(tmp_path / "room.world", world(model("m", "0 0 0 0 0 0", room_links(6, 4))))
+    assert main(["--world", str(path), "--out", str(tmp_path / "room.png")]) == 0
+    assert (tmp_path / "room.png").stat().st_size > 0
+    assert "room: " in capsys.readouterr().out
+    assert main(["--world", str(tmp_path / "none.world")]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "No such file" in error[0]
+    assert main(["--list", "kth-validation"]) == 0
+    assert len(capsys.readouterr().out.split()) == 18

@@ -542,7 +542,9 @@ def test_a_team_run_through_up_in_ros_2(ros_router, tmp_path):
         )
         mid_run = _latched_sample(ros_peer, 0, "/mapex/rosteam_0/r0/map", ros.GRID_TYPE)
         assert up_process.wait() == 0, up_process.log()[-3000:]
-        graph_1 = _graph_of(ros_peer, 1)
+        graph_1 = until(  # the standalone bridge may still be declaring on a loaded machine
+            lambda: _graph_of(ros_peer, 1, at_least=2 * len(ROBOT_TOPICS)), "its topics", 60.0
+        )
         late = {
             (robot, name): _latched_sample(ros_peer, 1, f"/mapex/rosteam_0/{robot}/{name}",
                                            ros.PATH_TYPE)
@@ -591,7 +593,8 @@ def test_a_team_run_through_up_in_ros_2(ros_router, tmp_path):
         cells = [tuple(poses[t].pose) for t in sorted(poses)]
         cells = [c for i, c in enumerate(cells) if i == 0 or c != cells[i - 1]]
         trajectory = [tuple(p) for p in _path_cells(late[robot, "trajectory"], frame)]
-        assert len(trajectory) > 1 and cells[-len(trajectory) :] == trajectory
+        shared = min(len(cells), len(trajectory))  # the hub log may join after the first steps
+        assert shared > 1 and cells[-shared:] == trajectory[-shared:]
         path = hub_log.of(robot, "path")
         assert np.array_equal(_path_cells(late[robot, "plan"], frame), path[max(path)].cells)
     assert {t.child_frame_id for t in late_static.transforms} == {
