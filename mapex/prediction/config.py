@@ -100,7 +100,7 @@ class PredictorTrainingConfig(Checked):
     # and this many times a soft IoU over the unknown cells farther than `far_cells` from
     # any known cell of the crop alone: the walls of rooms nobody has seen, which the whole
     # crop's IoU leaves to the near cells' many walls (0: none)
-    polish_far_soft_iou_weight: float = ranged(0.0, 0)
+    polish_far_soft_iou_weight: float = ranged(3.0, 0)  # v3
     far_cells: int = ranged(10, 1)  # 1 m, as the evaluation's "near" (Chebyshev, in cells)
     polish_learning_rate: float = positive(1e-3)
     # G is polished this many times from its base weights (seeds seed + 4, + 5, ...) and

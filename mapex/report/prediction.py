@@ -6,7 +6,8 @@ its no-prediction twin (`mapex.methods.PREDICTION_TWINS`) and the paired differe
 the episodes both ran (same world, start, seed; mean ± standard error). The twin's IoU and
 TU are G's map of what the twin saw, so a method is paired with its twin run under the same
 predictor; the oracle's G is the truth, so only its coverage is compared (with the twin run
-under any predictor: a twin explores the same under all). A second table pairs each
+under any predictor: a twin explores the same under all), as for a predictor whose twin did
+not run under it. A second table pairs each
 predictor with a reference predictor (`--reference`, default `lama-v2`) method by method.
 Prints markdown; `--json` also writes the figures.
 """
@@ -90,12 +91,11 @@ def twin_rows(runs: Sequence[RunRecord]) -> list[PairedRow]:
     for method, twin in PREDICTION_TWINS.items():
         for predictor in sorted_predictors({p for m, p in index if m == method}):
             mine = index[(method, predictor)]
-            if predictor == ORACLE:
-                theirs = _any_predictor(index, twin)
-                rows.append(paired_row(method, predictor, mine, theirs, twin, ("coverage",)))
-            elif (twin, predictor) in index:
+            if predictor != ORACLE and (twin, predictor) in index:
                 label = f"{twin}@{predictor}"
                 rows.append(paired_row(method, predictor, mine, index[(twin, predictor)], label))
+            elif theirs := _any_predictor(index, twin):  # coverage only: the same under all
+                rows.append(paired_row(method, predictor, mine, theirs, twin, ("coverage",)))
     return rows
 
 
@@ -180,7 +180,8 @@ def report_markdown(runs: Sequence[RunRecord], reference: str) -> str:
         f"{len(worlds)} worlds: {', '.join(worlds)}",
         "",
         "Each method against its no-prediction twin (paired over the episodes both ran; the "
-        "oracle's IoU and TU are the truth's, so only its coverage is compared):",
+        "oracle's IoU and TU are the truth's, so only its coverage is compared, as where the "
+        "twin did not run under that predictor):",
         "",
         rows_markdown(twins, "twin"),
         "",

@@ -38,7 +38,7 @@ CASES: dict[Case, str] = {
     Case("upen", "generated:5", "classical", 1, 1, 4, 150): "c6006d5ebe79ecdc",
     Case("nearest", "default", None, 1, 2, 0, 250): "9f7b55270892bb71",
     Case("mapex_plus", "generated:0", "classical", 1, 3, 1, 150): "6c9e07e34f7870ff",
-    Case("pipe", "default", "lama", 1, 1, 2, 60): "0a10284cf4245fe2",
+    Case("pipe", "default", "lama-v2", 1, 1, 2, 60): "0a10284cf4245fe2",  # v2: fixed weights
     Case("ig_hector", "generated:7", "classical", 1, (40, 40), 0, 150): "e93efb41965c49e4",
     Case("nearest", "generated:2", None, 1, 0, 0, 800, until_iou=0.5): "e1fa0cf2e571ed5e",
     Case("mapex_team", "generated:5", "classical", 3, 1, 7, 120): "4c24465b3f3e4ba8",

@@ -67,3 +67,18 @@ def test_nothing_to_compare_is_one_line(tmp_path, capsys, setup):
     assert main([str(target)]) == 2
     error = capsys.readouterr().err.strip().splitlines()
     assert len(error) == 1 and error[0].startswith("mapex.report.prediction: ")
+
+
+def test_a_predictor_whose_twin_ran_under_another_is_compared_on_coverage_only(tmp_path):
+    write_campaign(tmp_path / "runs")
+    for world in ("a", "b"):
+        for start in (0, 1):
+            write_run(tmp_path / "runs", world, "mapex", start, cov=0.63 + 0.001 * start,
+                      iou=0.7, predictor="lama-v3")  # fmt: skip
+    from mapex.report.runs import load_folders
+
+    figures = report_json(load_folders([tmp_path / "runs"]), "lama-v2")
+    row = next(r for r in figures["twins"] if r["predictor"] == "lama-v3")
+    assert row["against"] == "observed_map" and row["episodes"] == 4
+    assert row["difference"]["coverage"]["mean"] == pytest.approx(0.03)
+    assert row["difference"]["iou"]["mean"] is None  # the twin's IoU is another G's
