@@ -33,9 +33,10 @@ SERVED_PREDICTORS = (*LEARNED_PREDICTORS, ORACLE)  # what predictor workers serv
 
 PREDICTOR_HELP = (
     "the map predictor, also used for the IoU/TU metrics: 'lama' (default: the learned "
-    "ensemble of the package's weights folder), 'lama-v2' (the v2 ensemble of the README's "
-    "figures), 'classical' (OpenCV inpainting) or 'oracle' (the ground truth itself: an upper "
-    "bound of what a prediction can buy a method, not a predictor a robot could have; its "
+    "ensemble of the package's weights folder, v3), 'lama-v2' (the v2 ensemble of the "
+    "README's validation figures), 'classical' (OpenCV inpainting) or 'oracle' (the ground "
+    "truth itself: an upper bound of what a prediction can buy a method, not a predictor a "
+    "robot could have; its "
     "runs are labelled @oracle)"
 )
 # the line every command that runs the oracle logs when it starts
