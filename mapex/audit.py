@@ -216,6 +216,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = apply_overrides(ExplorationConfig(steps=args.steps), args.overrides)
         check_process_count(args.jobs, f"--jobs {args.jobs}")
+        config.world.check_starts(args.starts, "--starts")  # each spread over the whole map
         jobs = plan_jobs(args, config)
         rows = run_audit(jobs, args.jobs, not args.no_progress)
         rows = [flag(row, args.max_unknown) for row in rows]

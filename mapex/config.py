@@ -393,6 +393,22 @@ class WorldConfig(Checked):
     # metrics or curves) larger than this is refused before it is read; map arrays are held
     # to max_cells instead
     max_file_bytes: int = ranged(64 * 2**20, 1)
+    # an evaluation's starts (a starts file's, all maps together, or --starts) above this are
+    # refused before any is judged: each is at least one episode per method and seed
+    max_starts: int = ranged(10_000, 1)
+
+    def check_starts(self, starts: int, what: str) -> None:
+        """ConfigError (`too_many_starts`) when `starts`, the starts of `what`, are more
+        than `max_starts`."""
+        if starts > self.max_starts:
+            raise ConfigError(self.too_many_starts(f"{what} ({starts})"))
+
+    def too_many_starts(self, what: str) -> str:
+        """The one line refusing `what` for holding more than `max_starts` starts."""
+        return (
+            f"{what}: more than world.max_starts ({self.max_starts}) starts; "
+            f"--set world.max_starts=N raises the cap"
+        )
 
 
 @dataclass(frozen=True)

@@ -74,15 +74,24 @@ def pack_message(
     return payload
 
 
-def unpack_message(payload: Payload, config: ServicesConfig = DEFAULT_SERVICES) -> FieldReader:
-    """Check size, msgpack, envelope and schema version; return a reader over the fields."""
+def unpack_message(
+    payload: Payload, config: ServicesConfig = DEFAULT_SERVICES, max_bytes: int | None = None
+) -> FieldReader:
+    """Check size, msgpack, envelope and schema version; return a reader over the fields.
+
+    `max_bytes`: the receiver's own limit for what it expects (e.g. a world's step requests
+    cannot hold more than its cells), on the payload and on its decoded arrays alike, below
+    the global `max_message_bytes` and `max_decoded_bytes`. The msgpack objects are counted
+    first (`max_message_objects`), so no payload becomes millions of Python objects."""
     if not isinstance(payload, bytes | bytearray | memoryview):
         raise ProtocolError(f"payload must be bytes, got {type(payload).__name__}")
     size = memoryview(payload).nbytes
-    if size > config.max_message_bytes:
-        raise ProtocolError(
-            f"payload of {size} bytes exceeds the {config.max_message_bytes}-byte limit"
-        )
+    limit = (
+        config.max_message_bytes if max_bytes is None else min(max_bytes, config.max_message_bytes)
+    )
+    if size > limit:
+        raise ProtocolError(f"payload of {size} bytes exceeds the {limit}-byte limit")
+    count_objects(payload, config.max_message_objects)
     try:
         document = msgpack.unpackb(payload, raw=False, strict_map_key=True)
     except (ValueError, TypeError, msgpack.UnpackException) as error:
@@ -95,7 +104,57 @@ def unpack_message(payload: Payload, config: ServicesConfig = DEFAULT_SERVICES) 
     type_name = document.pop("type", None)
     if not isinstance(type_name, str):
         raise ProtocolError(f"message type must be a string, got {type(type_name).__name__}")
-    return FieldReader(type_name, document, config)
+    decoded = (
+        config.max_decoded_bytes if max_bytes is None else min(max_bytes, config.max_decoded_bytes)
+    )
+    return FieldReader(type_name, document, config, decoded)
+
+
+_FIXED = {  # msgpack type byte -> bytes that follow it (scalars of a fixed size)
+    0xC0: 0, 0xC2: 0, 0xC3: 0, 0xCA: 4, 0xCB: 8, 0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8,
+    0xD0: 1, 0xD1: 2, 0xD2: 4, 0xD3: 8, 0xD4: 2, 0xD5: 3, 0xD6: 5, 0xD7: 9, 0xD8: 17,
+}  # fmt: skip
+_SIZED = {  # type byte -> (bytes of its length, extra bytes before the data, objects or bytes)
+    0xC4: (1, 0, False), 0xC5: (2, 0, False), 0xC6: (4, 0, False),  # bin
+    0xC7: (1, 1, False), 0xC8: (2, 1, False), 0xC9: (4, 1, False),  # ext
+    0xD9: (1, 0, False), 0xDA: (2, 0, False), 0xDB: (4, 0, False),  # str
+    0xDC: (2, 0, True), 0xDD: (4, 0, True),  # array: that many objects
+    0xDE: (2, 0, True), 0xDF: (4, 0, True),  # map: twice that many
+}  # fmt: skip
+
+
+def count_objects(payload: Payload, limit: int) -> int:
+    """The msgpack objects in `payload`, walked by their headers without building any;
+    ProtocolError (one line) as soon as they exceed `limit`. Malformed data is left to the
+    unpacker (the walk stops at the end of the bytes)."""
+    data, at, pending, count = memoryview(payload).cast("B"), 0, 1, 0
+    end = len(data)
+    while pending and at < end:
+        pending, count, byte = pending - 1, count + 1, data[at]
+        if count > limit:
+            raise ProtocolError(f"payload holds more than {limit} msgpack objects")
+        at += 1
+        if byte <= 0x7F or byte >= 0xE0:
+            continue  # fixint
+        if byte <= 0x8F:
+            pending += 2 * (byte & 0x0F)  # fixmap
+        elif byte <= 0x9F:
+            pending += byte & 0x0F  # fixarray
+        elif byte <= 0xBF:
+            at += byte & 0x1F  # fixstr
+        elif byte in _FIXED:
+            at += _FIXED[byte]
+        elif byte in _SIZED:
+            width, extra, objects = _SIZED[byte]
+            length = int.from_bytes(data[at : at + width], "big")
+            at += width
+            if objects:
+                pending += length * (2 if byte >= 0xDE else 1)
+            else:
+                at += extra + length
+        else:
+            break  # 0xC1, never used: the unpacker says so
+    return count
 
 
 class FieldReader:
@@ -107,11 +166,17 @@ class FieldReader:
     Decoded arrays are read-only views of the payload (copy to modify).
     """
 
-    def __init__(self, type_name: str, fields: dict[str, Any], config: ServicesConfig) -> None:
+    def __init__(
+        self,
+        type_name: str,
+        fields: dict[str, Any],
+        config: ServicesConfig,
+        decoded_bytes: int | None = None,
+    ) -> None:
         self.type_name = type_name
         self._fields = fields
         self._unread = set(fields)
-        self._budget_bytes = config.max_decoded_bytes
+        self._budget_bytes = config.max_decoded_bytes if decoded_bytes is None else decoded_bytes
 
     def error(self, what: str) -> ProtocolError:
         """A ProtocolError naming this message's type."""

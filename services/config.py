@@ -32,6 +32,9 @@ class ServicesConfig(Checked):
     SECTION = "services"
     max_message_bytes: int = ranged(32 * 2**20, 1)  # encoded payload cap, checked before unpacking
     max_decoded_bytes: int = ranged(128 * 2**20, 1)  # cap on a message's decompressed array bytes
+    # msgpack objects (maps, lists, scalars) in one payload, counted before unpacking: a
+    # message holds a few hundred; 31 MiB of empty maps would be 31 M Python objects (3 GB)
+    max_message_objects: int = ranged(65536, 16)
     # arrays larger than this travel zlib-compressed
     compress_threshold_bytes: int = ranged(4096, 0)
     zlib_level: int = ranged(1, 0, 9)  # fastest level: maps are mostly runs of one code
@@ -62,6 +65,13 @@ class ServicesConfig(Checked):
     # (tests/services/test_rogue_workers.py); 1 turns the check off
     implausible_share: float = ranged(0.4, 0, 1)
     implausible_min_cells: int = ranged(32, 1)  # fewer known cells of a kind are not judged
+    # planner: with at least three members answering a crop, an answer that disagrees (wall
+    # or not) with the others' consensus on more than this share of the unknown cells where
+    # every other member agrees is left out (degraded) and its worker benched, as
+    # implausible ones are; judged from implausible_min_cells such cells. The shipped
+    # members' largest share on the KTH validation snapshots is measured in
+    # docs/design.md#trust; 1 turns the check off
+    consensus_max_disagreement: float = ranged(0.4, 0, 1)
     # one health probe (answered at once by a live worker)
     health_probe_timeout_s: float = positive(2.0)
     health_check_every_s: float = positive(5.0)  # services.up: how often its workers are probed
@@ -189,6 +199,17 @@ class WebConfig(Checked):
     retry_ms: int = ranged(1000, 0)  # how long a browser waits before reconnecting a dropped stream
     # a client this far behind is dropped (it reconnects and starts again from a fresh snapshot)
     client_max_queued_events: int = ranged(512, 1)
+    # ... or this many bytes behind; maps never pile up: a robot's newer map of a kind
+    # replaces the one still queued for a slow client (latest wins)
+    client_max_queued_bytes: int = ranged(8 * 2**20, 1)
+    # HTTP connections served at once (a thread each); one more is answered 503 and closed
+    max_connections: int = ranged(64, 1)
+    # a request's line and headers must have arrived this long after its connection was
+    # accepted, else the connection is closed (a slow or partial request holds no slot long)
+    request_timeout_s: float = positive(5.0)
+    # a write the client has not taken after this long ends its connection (a client that
+    # does not read)
+    send_timeout_s: float = positive(10.0)
     max_metric_points: int = ranged(5000, 1)  # metric samples kept per robot for late pages
     max_trajectory_points: int = ranged(20000, 1)  # poses kept per robot for late pages
     max_runs: int = ranged(32, 1)  # runs kept; the one updated least recently is forgotten first
@@ -197,6 +218,35 @@ class WebConfig(Checked):
 
 
 DEFAULT_WEB = WebConfig()
+
+
+@dataclass(frozen=True)
+class FoxgloveConfig(Checked):
+    """The live Foxglove server `services.foxglove`: where it serves and what one client may
+    hold (the Foxglove SDK's server behind a relay of this process's own: a cap on clients,
+    a handshake deadline, a per-client queue that drops the oldest messages)."""
+
+    SECTION = "foxglove"
+    host: str = "127.0.0.1"
+    port: int = ranged(8765, 0, MAX_PORT)  # the Foxglove app's default; 0: any free port
+    max_clients: int = ranged(8, 1)  # clients served at once; one more is answered 503
+    # a client's WebSocket handshake (its HTTP upgrade request) must have arrived this long
+    # after it connected, else it is closed
+    handshake_timeout_s: float = positive(5.0)
+    # a client that has taken none of what is sent to it for this long is closed
+    send_timeout_s: float = positive(10.0)
+    # messages queued per client in the SDK (its message_backlog_size, 1024 by default): when
+    # full, the oldest is dropped (latest wins). The maps of a 363 x 537 world are ~0.2 MB
+    # each, so a client that does not read holds ~30 MB here until it is closed. The SDK's
+    # queue of advertisements has the same size, and a client it overflows is disconnected:
+    # at 32, a client subscribing to 240 channels made at once was (test_foxglove_live.py)
+    message_backlog: int = ranged(128, 1)
+    # bytes this process buffers per client beyond what the kernel holds; above it, reading
+    # from the SDK for that client pauses (so the SDK's queue, above, is the one that drops)
+    client_buffer_bytes: int = ranged(2**18, 1)
+
+
+DEFAULT_FOXGLOVE = FoxgloveConfig()
 
 
 SERVICES_SECTION = "services"  # `--set services.FIELD=VALUE` reaches `RunConfig.services`

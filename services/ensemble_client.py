@@ -43,7 +43,14 @@ from mapex.prediction.oracle import ORACLE, oracle_prediction
 from services.codec import DEFAULT_SERVICES, ProtocolError
 from services.config import ServicesConfig
 from services.keys import AliveKey, alive_predictor_pattern, health_key, parse_key, predict_key
-from services.messages import ErrorReply, HealthReply, PredictReply, PredictRequest, decode_message
+from services.messages import (
+    ErrorReply,
+    HealthReply,
+    PredictReply,
+    PredictRequest,
+    decode_message,
+    map_message_bytes,
+)
 
 _WAIT_POLL_S = 0.02  # polling step of `wait`
 _ZENOH_TIMEOUT = b"Timeout"  # the error payload Zenoh ends a timed-out query with
@@ -97,6 +104,7 @@ class _Standing:
     benches: int = 0  # benches since its last good answer (each twice as long as the last)
     benched_until: float = 0.0  # monotonic time before which it gets no query
     next_probe: float = 0.0  # monotonic time of its next health probe while benched
+    lied: bool = False  # its last failure was an answer refused (not a timeout or no reply)
 
 
 class ZenohEnsemble(Predictor):
@@ -196,9 +204,11 @@ class ZenohEnsemble(Predictor):
             standing = self._standing.get(key)
             if standing is not None and not alive and standing.strikes == 0:
                 del self._standing[key]  # nothing against it left to remember
-            elif standing is not None and new:
-                # a new incarnation (e.g. restarted by its supervisor) ends the bench; its
-                # strikes stay: failing again benches it for twice as long
+            elif standing is not None and new and not standing.lied and standing.benches <= 1:
+                # a new incarnation (restarted by its supervisor after a hang) ends its first
+                # bench; its strikes stay: failing again benches it for twice as long. A
+                # worker benched for a refused answer, or benched again, waits its bench out
+                # whatever tokens it declares
                 standing.benched_until = 0.0
         if alive and not new:
             return  # a token seen twice (history and start-up query)
@@ -234,16 +244,20 @@ class ZenohEnsemble(Predictor):
             log.info("member %s: worker %s answered in time again: its record is cleared",
                      member, worker_id)  # fmt: skip
 
-    def _failed(self, member: str, worker_id: str, why: str, unanswered: bool = False) -> None:
-        """A failed query (`unanswered`: it ended with no reply at all): a strike, and a bench
-        of `bench_first_s` doubled per earlier bench since its last good answer. Queries
-        ending unanswered bench only the `bench_after_unanswered`-th in a row (a route may be
-        still building); every other failure benches at once."""
+    def _failed(
+        self, member: str, worker_id: str, why: str, unanswered: bool = False, lied: bool = False
+    ) -> None:
+        """A failed query (`unanswered`: it ended with no reply at all; `lied`: its answer was
+        refused): a strike, and a bench of `bench_first_s` doubled per earlier bench since its
+        last good answer. Queries ending unanswered bench only the
+        `bench_after_unanswered`-th in a row (a route may be still building); every other
+        failure benches at once."""
         services = self.services
         now = time.monotonic()
         with self._lock:
             standing = self._standing.setdefault((member, worker_id), _Standing())
             standing.strikes += 1
+            standing.lied = lied
             standing.unanswered = standing.unanswered + 1 if unanswered else 0
             if unanswered and standing.unanswered < services.bench_after_unanswered:
                 return
@@ -412,7 +426,34 @@ class ZenohEnsemble(Predictor):
         stacked = np.empty((len(answered), *shape), dtype=np.float32)
         for row, k in enumerate(answered):
             stacked[row] = results[k][0].probabilities()
-        return _Answers(stacked, answered, tuple(results[k][1] for k in answered))
+        kept = self._agreeing(inflight.crop, stacked, answered, results)
+        for k in kept:
+            self._succeeded(MEMBER_NAMES[k], results[k][1])
+        rows = [answered.index(k) for k in kept]
+        return _Answers(stacked[rows], kept, tuple(results[k][1] for k in kept))
+
+    def _agreeing(
+        self,
+        crop: np.ndarray,
+        stacked: np.ndarray,
+        answered: tuple[int, ...],
+        results: dict[int, tuple[PredictReply, str]],
+    ) -> tuple[int, ...]:
+        """The members of `answered` whose answers do not dissent from the others' consensus
+        (`dissent` above `consensus_max_disagreement`); each one that does is a failure of
+        its worker (benched), left out as a missing member."""
+        limit = self.services.consensus_max_disagreement
+        if self.oracle or limit >= 1:
+            return answered
+        kept = []
+        for k, share in zip(answered, dissent(crop, stacked, self.services), strict=True):
+            if share is None or share <= limit:
+                kept.append(k)
+                continue
+            why = f"its answer dissents on {share:.0%} of the cells the other members agree on"
+            log.warning("member %s: worker %s: %s", MEMBER_NAMES[k], results[k][1], why)
+            self._failed(MEMBER_NAMES[k], results[k][1], why, lied=True)
+        return tuple(kept)
 
     def _send(self, member: int, payload: bytes) -> _Pending | None:
         name = MEMBER_NAMES[member]
@@ -421,8 +462,9 @@ class ZenohEnsemble(Predictor):
             log.warning("member %s has no live worker", name)
             return None
         replies = self.session.get(
-            predict_key(name, worker_id), payload=payload, timeout=self.services.predict_timeout_s
-        )
+            predict_key(name, worker_id), payload=payload, timeout=self.services.predict_timeout_s,
+            consolidation=zenoh.ConsolidationMode.NONE,  # every reply, even two on one key
+        )  # fmt: skip
         return _Pending(member, worker_id, replies)
 
     def _collect(
@@ -439,16 +481,25 @@ class ZenohEnsemble(Predictor):
                 unanswered.add(worker_id)
                 self._failed(name, worker_id, "no reply", unanswered=True)
             return None, False
-        problem = "no reply"
+        problem, valid = "no reply", []
         for reply in replies:
             message, problem = self._check_reply(reply, inflight, name, worker_id)
             if problem is None:
-                self._succeeded(name, worker_id)
-                return message, True
-            log.warning("member %s: worker %s gave no prediction: %s", name, worker_id, problem)
-        if any(_timed_out(reply) for reply in replies):
-            problem = "a timeout"
-        self._failed(name, worker_id, problem)
+                valid.append(message)
+            else:
+                log.warning("member %s: worker %s gave no prediction: %s", name, worker_id, problem)
+        if _different(valid):
+            log.warning(
+                "member %s: %d different answers on worker %s's key: another session answers "
+                "as it; none is used", name, len(valid), worker_id,
+            )  # fmt: skip
+            return None, True
+        if valid:
+            return valid[0], True  # its record is cleared once the answers agree (_finish)
+        timed_out = any(_timed_out(reply) for reply in replies)
+        problem = "a timeout" if timed_out else problem
+        lied = not timed_out and not problem.startswith(("error reply", "no reply"))
+        self._failed(name, worker_id, problem, lied=lied)
         return None, True
 
     def _check_reply(
@@ -458,7 +509,8 @@ class ZenohEnsemble(Predictor):
         of `member`, plausibly; else (None, why not)."""
         payload = (reply.ok or reply.err).payload.to_bytes()
         try:
-            message = decode_message(payload, (PredictReply, ErrorReply), self.services)
+            limit = map_message_bytes(inflight.crop.size)  # one map of the crop
+            message = decode_message(payload, (PredictReply, ErrorReply), self.services, limit)
         except ProtocolError as error:
             if reply.err is not None:  # Zenoh's own error, e.g. "Timeout"
                 return None, " ".join(payload.decode("utf-8", "replace").split())
@@ -482,6 +534,12 @@ class ZenohEnsemble(Predictor):
             return f"an oracle answer for a crop outside the {self.walls.shape} map"
         wrong = int(np.count_nonzero(quantised != truth))
         return None if wrong == 0 else f"wrong oracle answer: {wrong} cells are not the truth"
+
+
+def _different(answers: list[PredictReply]) -> bool:
+    """Whether `answers` to one query hold two different maps."""
+    first = answers[0].probabilities_u8 if answers else None
+    return any(not np.array_equal(a.probabilities_u8, first) for a in answers[1:])
 
 
 def _timed_out(reply: zenoh.Reply) -> bool:
@@ -539,3 +597,31 @@ def implausibility(
     if unknown.size >= least and unknown.min() == unknown.max():
         return f"one value ({int(unknown[0])}/255) on all {unknown.size} unknown cells"
     return None
+
+
+def dissent(
+    crop: np.ndarray, answers: np.ndarray, services: ServicesConfig = DEFAULT_SERVICES
+) -> list[float | None]:
+    """For each of the member answers `answers` (k, h, w probabilities) to the observed
+    `crop`: the share of the unknown cells where every *other* answer agrees (all walls or
+    all free) on which it says the opposite, or None where that cannot be judged (fewer
+    than three answers, or fewer than `implausible_min_cells` such cells). Honest members
+    trained on the same data agree where they are sure; a forged answer that copies the
+    known cells and invents the unknown ones does not."""
+    walls = answers >= 0.5
+    unknown = crop == UNKNOWN
+    shares: list[float | None] = []
+    for k in range(len(answers)):
+        others = np.delete(walls, k, axis=0)
+        if len(others) < 2:
+            shares.append(None)
+            continue
+        all_walls, all_free = others.all(axis=0), ~others.any(axis=0)
+        agreed = unknown & (all_walls | all_free)
+        count = int(np.count_nonzero(agreed))
+        if count < services.implausible_min_cells:
+            shares.append(None)
+            continue
+        opposite = agreed & (walls[k] != all_walls)
+        shares.append(np.count_nonzero(opposite) / count)
+    return shares

@@ -25,6 +25,7 @@ import socket
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -62,12 +63,14 @@ from mapex.results import (
 )
 from mapex.shards import Shard, parse_shard, shard_items
 from mapex.worlds import StartSpec, WorldError, load_world, world_spec_help
-from mapex.worlds.starts import start_argument, start_cell, start_label
+from mapex.worlds.starts import start_argument, start_cells, start_label
 from services.bridges.outside_tools import (
     OutsideTools,
     add_outside_tool_arguments,
     bridge_spec,
     check_outside_tool_arguments,
+    tool_process_count,
+    viewer_specs,
 )
 from services.config import RunConfig, add_run_config_argument
 from services.health import PoolWatch
@@ -77,6 +80,7 @@ from services.pool import (
     HubWatch,
     RunProgress,
     add_pool_arguments,
+    adopt_config_file,
     check_hub_answers,
     hub_session_config,
     resolve_pool_predictor,
@@ -144,8 +148,7 @@ def plan_episodes(
     for spec in world_specs:
         world = load_world(spec, world_config.max_cells)
         mine = starts if isinstance(starts, list) else _starts_of(starts, world.name)
-        for start in mine:
-            start_cell(world, start, world_config.start_clearance_cells)
+        start_cells(world, mine, world_config.start_clearance_cells)  # all at once
         budget = resolve_steps(steps, world)
         episodes += [
             Episode(
@@ -170,13 +173,29 @@ def _starts_of(starts: dict[str, list[StartSpec]], world_name: str) -> list[Star
 
 
 def read_starts_file(
-    path: Path, max_bytes: int = DEFAULT_WORLD_CONFIG.max_file_bytes
+    path: Path,
+    max_bytes: int = DEFAULT_WORLD_CONFIG.max_file_bytes,
+    world: WorldConfig = DEFAULT_WORLD_CONFIG,
 ) -> dict[str, list[StartSpec]]:
     """{map name: [(row, col), ...]} from a JSON object of [[row, col], ...] lists; a
     one-line ValueError for anything else (a file that is not a regular file, or larger
-    than `max_bytes`, is never read: `mapex.io_limits`)."""
+    than `max_bytes`, is never read: `mapex.io_limits`). More than `world.max_starts`
+    starts, all maps together, is a ConfigError naming the cap, raised as soon as the
+    parser reads a number past them (two a start): a file of millions is never parsed whole."""
+    numbers = itertools.count(1)
+
+    def counted(kind: type) -> Callable[[str], int | float]:
+        def parse(text: str) -> int | float:
+            if next(numbers) > 2 * world.max_starts:
+                raise ConfigError(world.too_many_starts(f"starts file {path}"))
+            return kind(text)
+
+        return parse
+
     try:
-        data = json.loads(read_text(path, max_bytes))
+        data = json.loads(
+            read_text(path, max_bytes), parse_int=counted(int), parse_float=counted(float)
+        )
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
         raise ValueError(f"starts file {path}: {' '.join(str(error).split())}") from None
     if not isinstance(data, dict):
@@ -375,14 +394,16 @@ def main(args: argparse.Namespace) -> int:
     exploration, services = run_config.exploration, run_config.services
     methods = list(args.methods) + (list(ABLATIONS) if args.ablations else [])
     max_bytes = exploration.world.max_file_bytes
-    starts = (
-        args.starts if args.starts_file is None else read_starts_file(args.starts_file, max_bytes)
-    )
+    if args.starts_file is None:
+        exploration.world.check_starts(len(args.starts), "--starts")
+        starts = args.starts
+    else:
+        starts = read_starts_file(args.starts_file, max_bytes, exploration.world)
     exploration.team.check_robots(args.robots)
     resolve_pool_predictor(args)
     if args.robots > 1 and not any(method in TEAM_METHODS for method in methods):
         raise ConfigError(f"--robots {args.robots} needs a team method ({', '.join(TEAM_METHODS)})")
-    bridges = len(bridge_spec(args, []))
+    bridges = tool_process_count(args)
     services.check_processes(
         args.jobs + len(args.members) * args.replicas + bridges,
         f"--jobs {args.jobs} planners and {len(args.members)} x --replicas {args.replicas} "
@@ -405,7 +426,8 @@ def main(args: argparse.Namespace) -> int:
     whose = "" if shard is None else f"shard {shard}: {len(mine)} of the "
     counts = (len(episodes), already, len(todo))
     log.info("%s%d episodes: %d already finished, %d to run", whose, *counts)
-    check_hub_answers(args.connect, services)
+    connect_file = adopt_config_file(args)  # a --config file's mode and endpoints count
+    check_hub_answers(args.connect, services, connect_file)
     if shard is not None and not (args.listen or args.connect):
         args.listen = [free_hub_endpoint()]  # shards on one machine serve a hub each
         log.info("shard %s serves its hub on %s", shard, args.listen[0])
@@ -431,7 +453,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         tools = OutsideTools(session, args)
         if todo:
-            for spec in bridge_spec(args, flags) + workers:
+            for spec in bridge_spec(args, flags) + viewer_specs(args, flags) + workers:
                 supervisor.start(spec)
         hub = HubWatch(session, args.connect, services)
         done, failures = run_episodes(
@@ -520,7 +542,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         default=None,
         metavar="FILE",
-        help='explicit starts instead of corners: JSON {"<map name>": [[row, col], ...]}',
+        help='explicit starts instead of corners: JSON {"<map name>": [[row, col], ...]}, '
+        f"at most world.max_starts ({DEFAULT_WORLD_CONFIG.max_starts}) of them, all maps together",
     )
     parser.add_argument(
         "--seeds", type=_seeds, default=[0], help="comma-separated seeds (default: 0)"

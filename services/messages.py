@@ -64,9 +64,15 @@ class Message:
         return pack_message(self.TYPE, self._fields(config), config)
 
     @classmethod
-    def decode(cls: type[M], payload: Payload, config: ServicesConfig = DEFAULT_SERVICES) -> M:
-        """Parse and check a payload that must hold a message of this type."""
-        reader = unpack_message(payload, config)
+    def decode(
+        cls: type[M],
+        payload: Payload,
+        config: ServicesConfig = DEFAULT_SERVICES,
+        max_bytes: int | None = None,
+    ) -> M:
+        """Parse and check a payload that must hold a message of this type (`max_bytes`:
+        the receiver's limit, `unpack_message`)."""
+        reader = unpack_message(payload, config, max_bytes)
         if reader.type_name != cls.TYPE:
             raise ProtocolError(f"expected a {cls.TYPE} message, got type {reader.type_name!r}")
         return cls._read_all(reader)
@@ -89,9 +95,11 @@ def decode_message(
     payload: Payload,
     expected: tuple[type[Message], ...] | None = None,
     config: ServicesConfig = DEFAULT_SERVICES,
+    max_bytes: int | None = None,
 ) -> Message:
-    """Decode a payload of any message type (or of one of `expected`), fully checked."""
-    reader = unpack_message(payload, config)
+    """Decode a payload of any message type (or of one of `expected`), fully checked
+    (`max_bytes`: the receiver's limit, `unpack_message`)."""
+    reader = unpack_message(payload, config, max_bytes)
     cls = Message._REGISTRY.get(reader.type_name)
     if cls is None:
         raise ProtocolError(f"unknown message type {reader.type_name!r}")
@@ -148,6 +156,16 @@ class ScanReply(Message):
         return cls(pose, n_cells, hit, _whole(reader.added_number("t")))
 
 
+MESSAGE_OVERHEAD_BYTES = 64 * 2**10  # a message's envelope, scalars and array headers, at most
+
+
+def map_message_bytes(cells: int, maps: int = 1, extra_bytes: int = 0) -> int:
+    """The most a message holding `maps` maps of `cells` one-byte cells (and `extra_bytes`
+    of other arrays) can take, encoded or decoded: a receiver's `max_bytes`, so that no
+    message can be larger than what the run it belongs to can hold."""
+    return maps * cells + extra_bytes + MESSAGE_OVERHEAD_BYTES
+
+
 STEP_KEY_CONTEXT = b"mapex step key v1|"  # step_key: HMAC(run token, this + run id)
 STEP_MAC_CONTEXT = b"mapex step request v1"  # the first bytes a step request's MAC covers
 _MAC_HEX = re.compile(r"[0-9a-f]{64}")  # an HMAC-SHA256, lowercase hex
@@ -158,6 +176,26 @@ def step_key(run_token: str, run: str) -> bytes:
     with: HMAC-SHA256 of `STEP_KEY_CONTEXT` + the run id under the run token. It proves the
     token without revealing it, and a MAC made with it is worth nothing in another run."""
     return hmac.new(run_token.encode(), STEP_KEY_CONTEXT + run.encode(), hashlib.sha256).digest()
+
+
+WORLD_REPLY_CONTEXT = b"mapex world reply v1"  # the first bytes a world reply's MAC covers
+
+
+def world_reply_mac(key: bytes, key_expr: str, query: bytes, reply: bytes) -> bytes:
+    """The MAC (HMAC-SHA256, 32 bytes) a run's world attaches to each reply it sends on
+    `key_expr` (step, world_info, ground_truth) under the run's step key: it covers the
+    query's payload too, so a planner takes only its own world's answer to what it asked,
+    and a reply cannot be moved to another key, run or query (docs/design.md#trust)."""
+    digest = hmac.new(key, digestmod=hashlib.sha256)
+    for part in (WORLD_REPLY_CONTEXT, key_expr.encode(), query, reply):
+        digest.update(_framed(part))
+    return digest.digest()
+
+
+def world_reply_signed(key: bytes, key_expr: str, query: bytes, reply: bytes, mac: bytes) -> bool:
+    """Whether `mac` is the world's MAC of `reply` to `query` on `key_expr` under `key`
+    (compared in constant time)."""
+    return hmac.compare_digest(mac, world_reply_mac(key, key_expr, query, reply))
 
 
 @dataclass(frozen=True, eq=False)

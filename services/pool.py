@@ -36,7 +36,7 @@ from services.config import ServicesConfig
 from services.keys import RobotKey, RobotTopic, parse_key, robot_key_pattern
 from services.messages import Message, decode_message
 from services.supervisor import ProcessSpec, claim_hub, endpoint_silence
-from services.zenoh_config import ZenohConfigError, zenoh_config
+from services.zenoh_config import ZenohConfigError, config_file_endpoints, zenoh_config
 
 log = logging.getLogger("services.pool")
 
@@ -129,12 +129,47 @@ def worker_specs(
     return specs
 
 
+def adopt_config_file(args: argparse.Namespace) -> str | None:
+    """Take the mode and endpoints of a `--config` file as the flags `--mode`, `--connect`
+    and `--listen` that the command line leaves out, so that `services.up --config FILE`
+    does what those flags would (a file's own session settings, TLS or a user name, stay in
+    the file, which every session opens with): a file in client or peer mode that names
+    connect endpoints joins that hub, probed first (`check_hub_answers`) and watched
+    (`HubWatch`), as `--connect` does; one that names listen endpoints serves the hub there.
+    Flags given still win. ZenohConfigError (one line) for a file that is in client mode
+    with nowhere to connect to, or a router that connects elsewhere (a run either serves its
+    hub or joins one). The file the connect endpoints came from, or None."""
+    if not args.config or args.connect:
+        return None
+    file = config_file_endpoints(args.config, args.mode)
+    mode = args.mode or file.mode
+    if file.connect and mode == "router":
+        raise ZenohConfigError(
+            f"Zenoh config file {args.config} is a router that connects to "
+            f"{', '.join(file.connect)}: give it mode client to join that hub (or --mode "
+            f"client), or no connect endpoints to serve the hub here"
+        )
+    if not file.connect and mode == "client":
+        raise ZenohConfigError(
+            f"Zenoh config file {args.config} is in client mode but names no connect "
+            f"endpoint: add the hub's (connect: {{ endpoints: [...] }}) or give --connect"
+        )
+    args.mode = mode
+    if file.connect:
+        args.connect = file.connect
+        return args.config
+    if args.listen is None and file.listen:
+        args.listen = file.listen
+    return None
+
+
 def hub_session_config(
     args: argparse.Namespace, services: ServicesConfig
 ) -> tuple[zenoh.Config, list[str]]:
     """(Zenoh config of the supervisor's own session, Zenoh flags for every child).
 
-    With --connect, everyone joins that hub or router. Otherwise the supervisor serves the
+    With --connect (or a `--config` file's connect endpoints: `adopt_config_file`),
+    everyone joins that hub or router. Otherwise the supervisor serves the
     hub on --listen (default tcp/127.0.0.1:7447) as a Zenoh *router* and its children are
     clients of it: every message takes one hop through the router, and no peer-to-peer mesh
     forms, whose routes Zenoh re-computes (dropping queries in flight) whenever a
@@ -143,6 +178,7 @@ def hub_session_config(
     ZenohConfigError with the two ways out): a run that silently joined would lose its hub,
     and its results, when the other supervisor ends.
     """
+    adopt_config_file(args)  # done already where the caller probed the hub first
     flags: list[str] = ["--config", args.config] if args.config else []
     if args.connect:  # a hub (router) elsewhere: everyone connects there
         flags += ["--mode", args.mode] if args.mode else []
@@ -203,21 +239,26 @@ class HubWatch:
         )
 
 
-def check_hub_answers(connect: Sequence[str] | None, services: ServicesConfig) -> None:
+def check_hub_answers(
+    connect: Sequence[str] | None, services: ServicesConfig, config_file: str | None = None
+) -> None:
     """ZenohConfigError (one line) naming the first `--connect` endpoint where nothing
     accepts a connection within `services.hub_probe_timeout_s`, before any child starts:
     otherwise a peer-mode session opens anyway and the run waits for a world that can never
     answer (and a client-mode one gives up only after Zenoh's own retries). tcp/ and tls/
-    endpoints are probed (`endpoint_silence`); None (no --connect) probes nothing."""
+    endpoints are probed (`endpoint_silence`); None (no --connect) probes nothing.
+    `config_file`: the `--config` file that named the endpoints (`adopt_config_file`)."""
+    named = "" if config_file is None else f" (named in {config_file})"
+    way_out = "leave out --connect" if config_file is None else "give a --config without it"
     for endpoint in connect or ():
         try:
             silence = endpoint_silence(endpoint, services.hub_probe_timeout_s)
         except ValueError as error:
-            raise ZenohConfigError(f"bad --connect endpoint: {error}") from None
+            raise ZenohConfigError(f"bad --connect endpoint{named}: {error}") from None
         if silence is not None:
             raise ZenohConfigError(
-                f"nothing answers at --connect {endpoint} ({silence}): start the hub or router "
-                f"there first, or leave out --connect to serve the hub here"
+                f"nothing answers at --connect {endpoint} ({silence}){named}: start the hub or "
+                f"router there first, or {way_out} to serve the hub here"
             )
 
 

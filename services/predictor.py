@@ -29,7 +29,7 @@ from typing import NoReturn
 import numpy as np
 import zenoh
 
-from mapex.config import ConfigError
+from mapex.config import ConfigError, WorldConfig
 from mapex.exit_codes import EXIT_USAGE
 from mapex.prediction import (
     DEFAULT_PREDICTOR,
@@ -57,7 +57,13 @@ from services.keys import (
     is_valid_id,
     predict_key,
 )
-from services.messages import ErrorReply, HealthReply, PredictReply, PredictRequest
+from services.messages import (
+    ErrorReply,
+    HealthReply,
+    PredictReply,
+    PredictRequest,
+    map_message_bytes,
+)
 from services.oracle_worker import (
     GroundTruths,
     OracleMember,
@@ -80,6 +86,8 @@ from services.zenoh_config import (
 )
 
 _DEVICE_PATTERN = re.compile(r"cpu|cuda(:\d+)?")
+
+DEFAULT_MAX_CELLS = WorldConfig().max_cells  # the largest world a request's crop may be of
 
 log = logging.getLogger("services.predictor")
 
@@ -108,8 +116,10 @@ class MemberServer:
         worker_id: str,
         hang_after: int | None = None,
         serves: str = DEFAULT_PREDICTOR,
+        max_cells: int = DEFAULT_MAX_CELLS,
     ) -> None:
         self.predictor = predictor
+        self.max_request_bytes = map_message_bytes(max_cells)  # a crop of the largest world
         self.serves = serves
         self.member = member
         self.worker_id = worker_id
@@ -126,7 +136,7 @@ class MemberServer:
         try:
             if payload is None:
                 raise ProtocolError("the query carries no payload")
-            request = PredictRequest.decode(payload)
+            request = PredictRequest.decode(payload, max_bytes=self.max_request_bytes)
         except ProtocolError as error:
             log.warning("refused a malformed request: %s", error)
             return ErrorReply(f"malformed predict request: {error}")
@@ -226,10 +236,12 @@ def main(
     inference: InferenceConfig = DEFAULT_INFERENCE,
     hang_after: int | None = None,
     predictor: str = DEFAULT_PREDICTOR,
+    max_cells: int = DEFAULT_MAX_CELLS,
 ) -> int:
     """Load `member` of `predictor` (its weights, from `weights_dir` or the predictor's own
     folder), then serve it until `stop` is set; return the queries answered. The oracle
-    loads nothing: it reads each run's ground truth when first asked.
+    loads nothing: it reads each run's ground truth when first asked. A request larger
+    than a crop of `max_cells` cells (`world.max_cells`) is refused unread.
 
     Raises ConfigError (missing or broken weights, settings of a network the predictor does
     not run) or ZenohConfigError (session refused). The weights load before the session
@@ -247,7 +259,9 @@ def main(
             log.info("%s", ORACLE_NOTICE)
             truths = GroundTruths(zenoh_truth_source(session, services), services.oracle_runs_kept)
             model = OracleMember(truths)
-        server = MemberServer(model, member, worker_id, hang_after, serves=predictor)
+        server = MemberServer(
+            model, member, worker_id, hang_after, serves=predictor, max_cells=max_cells
+        )
         return serve(session, server, stop or threading.Event(), services)
     finally:
         session.close()
@@ -343,6 +357,7 @@ def run_cli(argv: list[str] | None = None) -> int:
             inference=inference_from_args(args),
             hang_after=args.hang_after,
             predictor=args.predictor,
+            max_cells=run_config.exploration.world.max_cells,
         )
     except (ConfigError, ZenohConfigError) as error:
         log.error("%s", error)

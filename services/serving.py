@@ -29,6 +29,8 @@ from services.messages import ErrorReply, Message
 
 Answer = Callable[[Payload | None, float], Message]
 """Turns a query's payload (None: none) into the reply, told how long (s) it waited queued."""
+Signer = Callable[[str, bytes, bytes], bytes]
+"""(key, query payload, reply payload) -> the MAC attached to the reply (a world's)."""
 SUPERVISOR_PID_ENV = "MAPEX_SUPERVISOR_PID"  # set by services.supervisor for its children
 # a run's secret: services.up sets it for its world and planners, which sign their steps with
 # a key derived from it (services.messages.step_key); it never travels
@@ -42,10 +44,13 @@ class QueryServers:
     """One queryable and one answering thread per key, until `close`.
 
     Zenoh's threads only stamp each query with its arrival time and queue it; the key's
-    thread answers the queue in arrival order.
+    thread answers the queue in arrival order. With a `signer`, every reply (an error too)
+    is sent as a reply carrying its MAC as the attachment.
     """
 
-    def __init__(self, session: zenoh.Session, answers: dict[str, Answer]) -> None:
+    def __init__(
+        self, session: zenoh.Session, answers: dict[str, Answer], signer: Signer | None = None
+    ) -> None:
         self._queues: dict[str, queue.SimpleQueue] = {key: queue.SimpleQueue() for key in answers}
         self.queryables = [
             session.declare_queryable(key, self._enqueue(self._queues[key])) for key in answers
@@ -53,7 +58,7 @@ class QueryServers:
         self.threads = [
             threading.Thread(
                 target=answer_queries,
-                args=(self._queues[key], key, answer),
+                args=(self._queues[key], key, answer, signer),
                 name=f"serve {key}",
                 daemon=True,
             )
@@ -80,12 +85,15 @@ class QueryServers:
         return lambda query: waiting.put((time.monotonic(), query))
 
 
-def answer_queries(waiting: queue.SimpleQueue, key: str, answer: Answer) -> None:
+def answer_queries(
+    waiting: queue.SimpleQueue, key: str, answer: Answer, signer: Signer | None = None
+) -> None:
     """Answer queued (arrival time, query) pairs in order until a None arrives; an answer
     that raises is one warning and an `error` reply, and the next query is answered."""
     while (item := waiting.get()) is not None:
         arrived, query = item
         with query:  # leaving the block finalises the query: the querier stops waiting
+            payload = None
             try:
                 payload = None if query.payload is None else query.payload.to_bytes()
                 reply = answer(payload, time.monotonic() - arrived)
@@ -96,7 +104,9 @@ def answer_queries(waiting: queue.SimpleQueue, key: str, answer: Answer) -> None
                 reply = ErrorReply(f"{key}: the query could not be answered")
                 encoded = reply.encode()
             try:
-                if isinstance(reply, ErrorReply):
+                if signer is not None:
+                    query.reply(key, encoded, attachment=signer(key, payload or b"", encoded))
+                elif isinstance(reply, ErrorReply):
                     query.reply_err(encoded)
                 else:
                     query.reply(key, encoded)

@@ -48,6 +48,8 @@ from services.bridges.outside_tools import (
     add_outside_tool_arguments,
     bridge_spec,
     check_outside_tool_arguments,
+    tool_process_count,
+    viewer_specs,
 )
 from services.config import RunConfig, add_run_config_argument
 from services.health import PoolWatch
@@ -57,6 +59,7 @@ from services.pool import (
     HubWatch,
     RunProgress,
     add_pool_arguments,
+    adopt_config_file,
     check_hub_answers,
     hub_session_config,
     resolve_pool_predictor,
@@ -72,6 +75,7 @@ from services.zenoh_config import (
 )
 
 RUN_PREFIX_MAX_CHARS = ID_MAX_CHARS - 8  # room for the '-<k>' run suffix
+VIEWERS = "viewers"  # the role of the web view and Foxglove server children: never fatal
 
 log = logging.getLogger("services.up")
 
@@ -208,10 +212,12 @@ def main(args: argparse.Namespace) -> int:
     runs = plan_runs(args, world, exploration)
     check_output_folder(args.out or DEFAULT_RESULTS_DIR)
     check_outside_tool_arguments(args)
-    check_hub_answers(args.connect, services)
+    connect_file = adopt_config_file(args)  # a --config file's mode and endpoints count
+    check_hub_answers(args.connect, services, connect_file)
     own_config, zenoh_flags = hub_session_config(args, services)
     specs = child_specs(args, runs, zenoh_flags, run_config)
     specs["tools"] = bridge_spec(args, zenoh_flags)
+    specs[VIEWERS] = viewer_specs(args, zenoh_flags)
     if args.predictor == ORACLE:
         log.warning("%s", ORACLE_NOTICE)
     stop = stop_on_signals()
@@ -222,8 +228,9 @@ def main(args: argparse.Namespace) -> int:
     tools = None
     try:
         tools = OutsideTools(session, args)
-        for spec in specs["tools"] + specs["workers"] + specs["worlds"] + specs["planners"]:
-            supervisor.start(spec)
+        for role in ("tools", VIEWERS, "workers", "worlds", "planners"):
+            for spec in specs[role]:
+                supervisor.start(spec)
         total = args.steps * sum(len(run.starts) for run in runs)
         hub = HubWatch(session, args.connect, services)
         return supervise(
@@ -242,7 +249,7 @@ def check_process_caps(args: argparse.Namespace, run_config: RunConfig) -> None:
     the processes asked for (a world and --robots planners per run, the workers, the outside
     tools) are more than this machine holds (`ServicesConfig.check_processes`)."""
     run_config.exploration.team.check_robots(args.robots)
-    bridges = len(bridge_spec(args, []))
+    bridges = tool_process_count(args)
     planners, workers = args.runs * args.robots, len(args.members) * args.replicas
     run_config.services.check_processes(
         planners + args.runs + workers + bridges,
@@ -253,8 +260,9 @@ def check_process_caps(args: argparse.Namespace, run_config: RunConfig) -> None:
 
 
 def _failed_start(supervisor: Supervisor, specs: dict[str, list[ProcessSpec]]) -> str | None:
-    """A line naming the first child that exited with a usage error, with its last line."""
-    for spec in (spec for role in specs.values() for spec in role):
+    """A line naming the first child that exited with a usage error, with its last line
+    (a viewer's exit, logged by the supervisor, never ends the run)."""
+    for spec in (spec for role, of in specs.items() if role != VIEWERS for spec in of):
         if supervisor.returncode(spec.name) == EXIT_USAGE:
             said = supervisor.last_words(spec.name)
             return f"{spec.name} failed to start ({said}): stopping the run"

@@ -59,12 +59,15 @@ from services.messages import (
     StepReply,
     StepRequest,
     WorldInfo,
+    map_message_bytes,
     step_key,
+    world_reply_mac,
 )
 from services.serving import (
     RUN_TOKEN_ENV,
     Answer,
     QueryServers,
+    Signer,
     configure_logging,
     run_token_from_env,
     stop_on_signals,
@@ -134,6 +137,9 @@ class WorldServer:
         self.run = run
         self._step_key = None if run_token is None else step_key(run_token, run or "")
         self.services = services
+        # a request holds its motion and at most one claimed map of the world
+        cells_per_step = config.motion.cells_per_step
+        self._request_bytes = map_message_bytes(world.occupancy.size, 1, 8 * cells_per_step)
         self.served = 0  # robot scans taken, all robots together
         self.seq = 0  # the step being collected (0: the initial scans)
         self.lost: set[int] = set()
@@ -168,7 +174,7 @@ class WorldServer:
                 raise ProtocolError(f"robot {robot} is not one of 0-{self.n_robots - 1}")
             if payload is None:
                 raise ProtocolError("the query carries no payload")
-            request = StepRequest.decode(payload)
+            request = StepRequest.decode(payload, self.services, self._request_bytes)
         except ProtocolError as error:
             log.warning("refused a malformed step request: %s", error)
             return ErrorReply(f"malformed step request: {error}")
@@ -179,6 +185,14 @@ class WorldServer:
             return self._refuse(robot, f"step seq {request.seq}: {problem}")
         with self._clock:
             return self._wait_for_step(robot, request)
+
+    def reply_signer(self) -> Signer | None:
+        """With a run token: what signs every reply this world sends (`world_reply_mac`
+        under the run's step key), so that its planners take no other answer; else None."""
+        key = self._step_key
+        if key is None:
+            return None
+        return lambda key_expr, query, reply: world_reply_mac(key, key_expr, query, reply)
 
     def watch_planners(self, session: zenoh.Session, run: str) -> zenoh.LivelinessSubscriber:
         """Mark a robot lost when its planner's liveliness token goes (undeclare the
@@ -346,7 +360,7 @@ def serve(
     }
     for robot in range(server.n_robots):
         answers[robot_key(run, robot_id(robot), "step")] = _step_answerer(server, robot)
-    servers = QueryServers(session, answers)
+    servers = QueryServers(session, answers, server.reply_signer())
     session.put(run_key(run, "world_info"), info.encode())
     session.put(run_key(run, "ground_truth"), truth.encode())
     token = session.liveliness().declare_token(alive_world_key(run))

@@ -39,10 +39,13 @@ from services.messages import (
     StepRequest,
     WorldInfo,
     decode_message,
+    map_message_bytes,
     step_key,
+    world_reply_signed,
 )
 
 _RETRY_PAUSE_S = 0.2  # between start-up queries for the world's keys
+_ZENOH_TIMEOUT = b"Timeout"  # the error payload Zenoh ends a timed-out query with
 
 log = logging.getLogger("services.world_client")
 
@@ -79,6 +82,7 @@ class ZenohWorld:
         self.info: WorldInfo | None = None  # set by fetch: what step replies are checked by
         self.world: World | None = None
         self._sensor: SensorConfig | None = None  # the world's sensor, when it said it
+        self._poses: np.ndarray | None = None  # every robot's cell after the last step
 
     def fetch(self, timeout_s: float | None = None) -> tuple[WorldInfo, World]:
         """The world's info and its ground truth as a `World`, waiting for the world to serve."""
@@ -119,16 +123,21 @@ class ZenohWorld:
         if self._step_key is not None:
             request = request.signed(self._step_key, self.run, self.robot)
         wait_s = self.services.step_timeout_s + self.services.team_step_wait_s
-        reply = self._request(self.key, request.encode(self.services), seq, wait_s)
+        reply = self._request(self.key, request.encode(self.services), request, wait_s)
+        if not reply.finished:
+            self._poses = reply.poses.copy()
         return _world_step_of(reply, max(seq - 1, 0))
 
-    def _request(self, key: str, payload: bytes, seq: int, timeout_s: float) -> StepReply:
-        """The world's valid reply to step query `seq` on `key`, asked again with back-off
-        while unanswered; StepRefusedError or WorldUnavailableError (one line)."""
-        began = time.monotonic()
+    def _request(
+        self, key: str, payload: bytes, request: StepRequest, timeout_s: float
+    ) -> StepReply:
+        """The world's valid reply to step query `request` on `key`, asked again with
+        back-off while unanswered (a query that timed out too); StepRefusedError or
+        WorldUnavailableError (one line)."""
+        began, seq = time.monotonic(), request.seq
         deadline = began + self.services.step_retries * timeout_s
         pause, longest_pause = self.services.step_retry_pause_s
-        attempt, check = 0, self._step_check(seq)
+        attempt, check = 0, self._step_check(request)
         while True:
             attempt += 1
             wait_s = max(min(timeout_s, deadline - time.monotonic()), 0.1)
@@ -165,29 +174,71 @@ class ZenohWorld:
         check: Callable[[Message], str | None] | None = None,
     ) -> Message | None:
         """The first valid reply of the expected kinds to one query (an ErrorReply needs no
-        `check`), or None when none came. With `check`, a query that got only invalid
-        replies (undecodable, of another kind, or what `check` finds wrong) raises
-        WorldUnavailableError (one line); without, they are dropped."""
-        invalid = None
-        for reply in self.session.get(key, payload=payload or None, timeout=timeout_s):
+        `check`), or None when none came (Zenoh's own end of a timed-out query is none).
+        Every queryable on `key` is asked and each reply taken as it comes, so an answer
+        held back elsewhere delays nothing. In a run with a token, a reply that does not
+        carry the world's MAC of it (`world_reply_signed`) is not the world's: dropped;
+        without a token, an error reply is returned only if no valid reply came.
+        With `check`, a query whose world replies were all invalid (undecodable, of another
+        kind, or what `check` finds wrong) raises WorldUnavailableError (one line);
+        without, they are dropped."""
+        invalid, refusal = None, None
+        replies = self.session.get(
+            key, payload=payload or None, timeout=timeout_s,
+            target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+        )  # fmt: skip
+        for reply in replies:
             sample = reply.ok if reply.ok is not None else reply.err
+            if reply.ok is None and sample.payload.to_bytes() == _ZENOH_TIMEOUT:
+                continue  # the query timed out: no reply
+            if not self._from_the_world(key, payload, sample):
+                log.warning("%s: dropped a reply not signed by this run's world", key)
+                continue
             try:
-                message = decode_message(sample.payload.to_bytes(), kinds, self.services)
+                message = decode_message(
+                    sample.payload.to_bytes(), kinds, self.services, self._reply_bytes()
+                )
             except ProtocolError as error:
                 invalid = str(error)
             else:
+                if isinstance(message, ErrorReply) and self._step_key is None:
+                    refusal = message  # anyone's, unsigned: taken if no valid reply comes
+                    continue
                 is_error = isinstance(message, ErrorReply)
                 invalid = None if check is None or is_error else check(message)
                 if invalid is None:
                     return message
             log.warning("%s: dropped a reply: %s", key, invalid)
+        if refusal is not None:
+            return refusal
         if invalid is not None and check is not None:
             raise WorldUnavailableError(f"{key}: the world's reply is invalid: {invalid}")
         return None
 
-    def _step_check(self, seq: int) -> Callable[[Message], str | None]:
-        """What is wrong with a reply to step query `seq` (None: nothing)."""
-        return lambda reply: _step_problem(reply, seq, self.info, self.world, self._sensor)
+    def _reply_bytes(self) -> int | None:
+        """The most a step reply of this world can take (None before `fetch`): every
+        robot's scan and claimed map."""
+        if self.info is None:
+            return None
+        robots, rays = len(self.info.starts), self.info.n_rays or 0
+        cells = int(np.prod(self.info.shape))
+        return map_message_bytes(cells, robots, robots * (3 * rays + 64))
+
+    def _from_the_world(self, key: str, query: bytes, sample: zenoh.Sample) -> bool:
+        """Whether `sample` carries this run's world's MAC (always True without a token)."""
+        if self._step_key is None:
+            return True
+        mac = None if sample.attachment is None else sample.attachment.to_bytes()
+        reply = sample.payload.to_bytes()
+        return mac is not None and world_reply_signed(self._step_key, key, query, reply, mac)
+
+    def _step_check(self, request: StepRequest) -> Callable[[Message], str | None]:
+        """What is wrong with a reply to step query `request` (None: nothing)."""
+        moves = _Moves(self.robot, request, self._poses, self.info)
+        return lambda reply: (
+            _step_problem(reply, request.seq, self.info, self.world, self._sensor)
+            or moves.problem(reply)
+        )
 
 
 def _step_problem(
@@ -233,6 +284,44 @@ def _step_problem(
             if not (same_cells and np.array_equal(truth.hit, reply.hit[robot])):
                 return f"step_reply scan of robot {robot_id(robot)} contradicts the ground truth"
     return None
+
+
+class _Moves:
+    """The moves a step reply may show: the robot asking is where its request took it (the
+    last cell asked) or where it stood (a refused or late motion); a teammate moved at most
+    `cells_per_step` cells (one 8-connected move each); at seq 0 everyone is at its start;
+    and the team is finished only when this robot said it was done."""
+
+    def __init__(
+        self, robot: int, request: StepRequest, poses: np.ndarray | None, info: WorldInfo | None
+    ) -> None:
+        self.robot, self.request, self.poses, self.info = robot, request, poses, info
+
+    def problem(self, reply: Message) -> str | None:
+        """Why the moves `reply` shows cannot have happened, or None."""
+        if not isinstance(reply, StepReply) or self.info is None:
+            return None
+        name = robot_id(self.robot)
+        if reply.finished:
+            done = self.request.done and self.request.seq > 0
+            return None if done else f"step_reply says the team finished, {name} was not done"
+        poses = reply.poses
+        if self.request.seq == 0 or self.poses is None:
+            starts = np.array(self.info.starts, dtype=np.int64).reshape(-1, 2)
+            same = starts.shape == poses.shape and np.array_equal(starts, poses)
+            return None if same else "step_reply of the initial scans not at the robots' starts"
+        own = {tuple(map(int, self.poses[self.robot]))}
+        if len(self.request.cells):
+            own.add(tuple(map(int, self.request.cells[-1])))
+        if tuple(map(int, poses[self.robot])) not in own:
+            return f"step_reply moves {name} to {tuple(map(int, poses[self.robot]))}, not asked"
+        limit = self.info.cells_per_step
+        if limit is not None and len(self.poses) == len(poses):
+            jumps = np.abs(poses.astype(np.int64) - self.poses).max(axis=1, initial=0)
+            if (jumps > limit).any():
+                robot = int(np.argmax(jumps))
+                return f"step_reply moves robot {robot_id(robot)} {int(jumps[robot])} cells at once"
+        return None
 
 
 def _world_step_of(reply: StepReply, t: int) -> WorldStep:

@@ -13,6 +13,7 @@ import argparse
 import json
 import re
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -106,6 +107,37 @@ def zenoh_config(
     if connect is not None:
         _insert(config, "connect/endpoints", list(connect), "--connect endpoint")
     return config
+
+
+@dataclass(frozen=True)
+class FileEndpoints:
+    """What a Zenoh config file says of its session's place: its `mode` (None: not named,
+    Zenoh's default peer) and its connect and listen endpoints, each for the mode the
+    session will have (a file may give them per mode, `{peer: [...], client: [...]}`)."""
+
+    mode: ZenohMode | None
+    connect: list[str]
+    listen: list[str] | None  # None: not named (Zenoh's defaults)
+
+
+def config_file_endpoints(path: str | Path, mode: ZenohMode | None = None) -> FileEndpoints:
+    """The mode and endpoints of the Zenoh config file at `path`; the endpoints as a session
+    in `mode` (default: the file's, else peer) would take them. ZenohConfigError (one line)
+    for a missing or invalid file."""
+    config = _config_from_file(Path(path))
+    named = json.loads(config.get_json("mode"))
+    mode = mode or named or "peer"
+    listen = config.get_json("listen/endpoints")
+    default_listen = zenoh.Config().get_json("listen/endpoints")
+    return FileEndpoints(
+        named,
+        _for_mode(json.loads(config.get_json("connect/endpoints")), mode),
+        None if listen == default_listen else _for_mode(json.loads(listen), mode),
+    )
+
+
+def _for_mode(endpoints: list[str] | dict[str, list[str]], mode: ZenohMode) -> list[str]:
+    return list(endpoints.get(mode, [])) if isinstance(endpoints, dict) else list(endpoints)
 
 
 def open_session(config: zenoh.Config) -> zenoh.Session:

@@ -17,7 +17,7 @@ from scipy import ndimage
 from mapex.config import ExplorationConfig
 from mapex.grid import Cell
 from mapex.worlds import StartSpec, World, WorldError, start_cell
-from mapex.worlds.starts import eligible_start_cells
+from mapex.worlds.starts import eligible_start_cells, start_cells
 
 
 def team_start_cells(
@@ -29,7 +29,7 @@ def team_start_cells(
     """
     clearance = config.world.start_clearance_cells
     if len(starts) == robots and robots > 1:
-        return [start_cell(world, start, clearance) for start in starts]
+        return start_cells(world, starts, clearance)  # all judged at once
     if len(starts) != 1:
         raise WorldError(f"{len(starts)} starts given for {robots} robots (give 1 or {robots})")
     first = start_cell(world, starts[0], clearance)

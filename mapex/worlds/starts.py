@@ -13,6 +13,7 @@ The exact rules: docs/algorithms.md#worlds.
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 
 import numpy as np
 from scipy import ndimage
@@ -83,29 +84,105 @@ def start_cell(world: World, start: StartSpec, clearance_cells: int) -> Cell:
     """The cell of `start` in `world`; WorldError (one line naming map and cell) when an
     explicit cell is outside the map, on a wall, outside valid space, not connected to the
     main free space (a closed room) or without clearance."""
-    start = normalise_start(start)
-    if isinstance(start, int):
-        if not 0 <= start < N_CORNERS:
+    return start_cells(world, [start], clearance_cells)[0]
+
+
+# why an explicit start cell is refused, in the order `start_cells` judges it
+_OUTSIDE, _WALL, _INVALID, _CLOSED, _CRAMPED = 1, 2, 3, 4, 5
+# explicit cells are clipped to this before they become an array: a start of 10**30 (a
+# starts file's JSON may hold one) is outside the map, not an overflow
+_FAR = 2**62
+
+
+def start_cells(world: World, starts: Sequence[StartSpec], clearance_cells: int) -> list[Cell]:
+    """The cell of each start of `starts` in `world`, all judged at once by `start_cell`'s
+    rules: the maps they are judged on (main free space, eligible cells, the four corner
+    starts) are computed once, whatever the number of starts, and the explicit cells are
+    looked up in them as one array. WorldError (one line) for the first start, in order,
+    that `start_cell` refuses, with its message."""
+    specs = [start if _is_normal(start) else normalise_start(start) for start in starts]
+    maps = _StartMaps(world, clearance_cells)
+    explicit = [i for i, spec in enumerate(specs) if not isinstance(spec, int)]
+    try:
+        cells = np.array([specs[i] for i in explicit], dtype=np.int64).reshape(-1, 2)
+    except OverflowError:
+        far = [[max(-_FAR, min(_FAR, v)) for v in specs[i]] for i in explicit]
+        cells = np.array(far, dtype=np.int64).reshape(-1, 2)
+    reasons = maps.refusals(cells)
+    refused = np.flatnonzero(reasons)
+    first_refused = explicit[int(refused[0])] if refused.size else len(specs)
+    for spec in specs[:first_refused]:  # the corners before it, judged as one by one would
+        if isinstance(spec, int) and not 0 <= spec < N_CORNERS:
             raise WorldError(
-                f"world '{world.name}': start {start} is not a corner 0-{N_CORNERS - 1}"
+                f"world '{world.name}': start {spec} is not a corner 0-{N_CORNERS - 1}"
             )
-        return start_poses(world, clearance_cells)[start]
-    row, col = int(start[0]), int(start[1])
-    where = f"world '{world.name}': start cell ({row}, {col})"
-    rows, cols = world.shape
-    if not (0 <= row < rows and 0 <= col < cols):
-        raise WorldError(f"{where} is outside the map ({rows} x {cols} cells)")
-    if world.occupancy[row, col]:
-        raise WorldError(f"{where} is on a wall")
-    if not world.valid_space[row, col]:
-        raise WorldError(f"{where} is outside the valid space")
-    if not main_free_space(world)[row, col]:
-        raise WorldError(
-            f"{where} is not connected to the largest free space of the world (a closed room?)"
-        )
-    if not eligible_start_cells(world, clearance_cells)[row, col]:
-        raise WorldError(f"{where} has less than {clearance_cells} cells of clearance to a wall")
-    return (row, col)
+        if isinstance(spec, int):
+            maps.corners()  # computed once; WorldError when no cell qualifies
+    if refused.size:
+        raise WorldError(maps.refusal(specs[first_refused], int(reasons[refused[0]])))
+    return [maps.corners()[s] if isinstance(s, int) else (int(s[0]), int(s[1])) for s in specs]
+
+
+def _is_normal(start: object) -> bool:
+    """Whether `start` is as `normalise_start` makes it already (a file's cells are)."""
+    if type(start) is int:
+        return True
+    return type(start) is tuple and len(start) == 2 and all(type(v) is int for v in start)
+
+
+class _StartMaps:
+    """The maps starts on `world` are judged on, each computed once, when first needed."""
+
+    def __init__(self, world: World, clearance_cells: int) -> None:
+        self.world = world
+        self.clearance_cells = clearance_cells
+        self._main: np.ndarray | None = None
+        self._eligible: np.ndarray | None = None
+        self._corners: list[Cell] | None = None
+
+    def main(self) -> np.ndarray:
+        if self._main is None:
+            self._main = main_free_space(self.world)
+        return self._main
+
+    def eligible(self) -> np.ndarray:
+        if self._eligible is None:
+            self._eligible = _eligible(self.world, self.clearance_cells, self.main())
+        return self._eligible
+
+    def corners(self) -> list[Cell]:
+        if self._corners is None:
+            self._corners = _poses(self.world, self.eligible(), self.clearance_cells)
+        return self._corners
+
+    def refusals(self, cells: np.ndarray) -> np.ndarray:
+        """Per row (row, col) of `cells`: 0 when a robot may start there, else why not
+        (`_OUTSIDE` ... `_CRAMPED`, the first rule it fails)."""
+        rows, cols = self.world.shape
+        r, c = cells[:, 0], cells[:, 1]
+        inside = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
+        r, c = np.where(inside, r, 0), np.where(inside, c, 0)
+        reasons = np.where(inside, 0, _OUTSIDE)
+        reasons[(reasons == 0) & self.world.occupancy[r, c].astype(bool)] = _WALL
+        reasons[(reasons == 0) & ~self.world.valid_space[r, c].astype(bool)] = _INVALID
+        if (reasons == 0).any():
+            reasons[(reasons == 0) & ~self.main()[r, c]] = _CLOSED
+        if (reasons == 0).any():
+            reasons[(reasons == 0) & ~self.eligible()[r, c]] = _CRAMPED
+        return reasons
+
+    def refusal(self, cell: tuple[int, int], reason: int) -> str:
+        """`start_cell`'s line for the explicit `cell` refused for `reason`."""
+        rows, cols = self.world.shape
+        where = f"world '{self.world.name}': start cell ({cell[0]}, {cell[1]})"
+        why = {
+            _OUTSIDE: f"is outside the map ({rows} x {cols} cells)",
+            _WALL: "is on a wall",
+            _INVALID: "is outside the valid space",
+            _CLOSED: "is not connected to the largest free space of the world (a closed room?)",
+            _CRAMPED: f"has less than {self.clearance_cells} cells of clearance to a wall",
+        }
+        return f"{where} {why[reason]}"
 
 
 def start_spec_of(world: World, cell: Cell, clearance_cells: int) -> StartSpec:
@@ -121,9 +198,14 @@ def start_poses(world: World, clearance_cells: int) -> list[Cell]:
 
     Two corners may share a start on a tiny map; WorldError when no cell qualifies.
     """
+    return _poses(world, eligible_start_cells(world, clearance_cells), clearance_cells)
+
+
+def _poses(world: World, eligible: np.ndarray, clearance_cells: int) -> list[Cell]:
+    """`start_poses` given the world's `eligible_start_cells`."""
     if clearance_cells < 0:
         raise ValueError(f"clearance_cells must be >= 0, got {clearance_cells}")
-    rows, cols = np.nonzero(eligible_start_cells(world, clearance_cells))
+    rows, cols = np.nonzero(eligible)
     if rows.size == 0:
         raise WorldError(
             f"world '{world.name}': no free valid cell with {clearance_cells} cells of clearance "
@@ -135,11 +217,16 @@ def start_poses(world: World, clearance_cells: int) -> list[Cell]:
 def eligible_start_cells(world: World, clearance_cells: int) -> np.ndarray:
     """Bool map of the cells a robot may start on: free, valid, `clearance_cells` clear of any
     wall and in the main free space (`main_free_space`)."""
+    return _eligible(world, clearance_cells, main_free_space(world))
+
+
+def _eligible(world: World, clearance_cells: int, main: np.ndarray) -> np.ndarray:
+    """`eligible_start_cells` given the world's `main_free_space`."""
     free = ~world.occupancy
     walled = np.pad(free, 1, constant_values=False)  # the map edge is a wall
     wall_distance = ndimage.distance_transform_edt(walled)[1:-1, 1:-1]
     clear = free & world.valid_space & (wall_distance >= clearance_cells + 1)
-    return clear & main_free_space(world)
+    return clear & main
 
 
 def main_free_space(world: World) -> np.ndarray:

@@ -1,11 +1,19 @@
-"""A live Foxglove WebSocket server with a run's topics (`--foxglove` on services.up and
-services.evaluate), for users of the Foxglove app (open a connection to ws://127.0.0.1:8765).
+"""A live Foxglove WebSocket server with a run's topics: `python -m services.foxglove`, the
+child process `--foxglove` starts on services.up and services.evaluate, for users of the
+Foxglove app (open a connection to ws://127.0.0.1:8765).
 
 It serves the channels of both recordings (`mapex.interop.mcap_file`: `--record` and
 `--record-foxglove`): each ROS 2 topic as CDR with its ros2msg schema, and beside it the
 Foxglove-schema channel (`/foxglove/...`) where there is one, over the Foxglove SDK's
 WebSocket protocol (subprotocol `SUBPROTOCOL`). Channels are made as topics first appear,
 in a context of this server's own. Needs the Foxglove SDK (`pip install -e '.[foxglove]'`).
+
+The SDK's server listens on a loopback port of its own; the port served is a
+`services.bridges.gate.TcpRelay` in front of it, which bounds what clients may hold (the SDK
+caps neither clients nor handshakes): `FoxgloveConfig.max_clients` at once (one more is
+answered 503), each handshake within `handshake_timeout_s`, a client that takes nothing for
+`send_timeout_s` closed, and `message_backlog` messages queued per client in the SDK, the
+oldest dropped first.
 
 Two things the SDK does not do by itself:
 
@@ -22,22 +30,36 @@ Two things the SDK does not do by itself:
 
 from __future__ import annotations
 
+import argparse
 import logging
 import os
 import queue
 import re
+import sys
 import threading
+from dataclasses import replace
 from typing import Any
 
 import zenoh
 
+from mapex.exit_codes import EXIT_USAGE
 from mapex.interop.ros_messages import MissingExtraError
 from mapex.interop.topics import ChannelMessage, Outgoing, channel_messages
 from services.bridges.follow import RunFollower
+from services.bridges.gate import TcpRelay
 from services.bridges.ros_translate import TRANSLATED_TOPICS, RunTranslator
-from services.config import Ros2Config
+from services.config import DEFAULT_FOXGLOVE, MAX_PORT, FoxgloveConfig, Ros2Config
+from services.keys import run_id_problem
+from services.serving import configure_logging, stop_on_signals, wait_for
+from services.zenoh_config import (
+    ZenohConfigError,
+    add_zenoh_arguments,
+    open_session,
+    zenoh_config_from_args,
+)
 
-FOXGLOVE_DEFAULT_PORT = 8765  # the Foxglove app's default WebSocket port
+FOXGLOVE_DEFAULT_PORT = DEFAULT_FOXGLOVE.port  # the Foxglove app's default WebSocket port
+SDK_HOST = "127.0.0.1"  # the SDK's own server listens here, on a free port, behind the relay
 SUBPROTOCOL = "foxglove.sdk.v1"  # the WebSocket subprotocol the SDK's server speaks
 # where and how the SDK (through Python logging) reports a subscription it refused
 SDK_CLIENT_LOGGER = "foxglove.websocket.connected_client"
@@ -50,10 +72,16 @@ log = logging.getLogger("services.foxglove_live")
 class FoxgloveServer:
     """The WebSocket server and its channels; `write` logs one message on both channels.
 
-    `write` is called from one thread (the follower's); the SDK calls back on its own.
+    `write` is called from one thread (the follower's); the SDK calls back on its own. The
+    clients connect to `port`, the relay's (`config` bounds them).
     """
 
-    def __init__(self, host: str = "127.0.0.1", port: int = FOXGLOVE_DEFAULT_PORT) -> None:
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = FOXGLOVE_DEFAULT_PORT,
+        config: FoxgloveConfig = DEFAULT_FOXGLOVE,
+    ) -> None:
         try:
             import foxglove
         except ImportError as error:
@@ -71,14 +99,24 @@ class FoxgloveServer:
         self.context = foxglove.Context()
         try:
             self.server = foxglove.start_server(
-                name="mapex", host=host, port=port, context=self.context,
-                server_listener=_listener(self),
+                name="mapex", host=SDK_HOST, port=0, context=self.context,
+                server_listener=_listener(self), message_backlog_size=config.message_backlog,
             )  # fmt: skip
-        except RuntimeError as error:  # the SDK's FoxgloveError, e.g. a port already taken
+        except RuntimeError as error:  # the SDK's FoxgloveError
             reason = _reason(error)
+            raise OSError(f"--foxglove: cannot start the Foxglove server: {reason}") from None
+        try:
+            self.relay = TcpRelay(
+                host, port, (SDK_HOST, self.server.port), config.max_clients,
+                config.handshake_timeout_s, config.send_timeout_s, config.client_buffer_bytes,
+                name="foxglove",
+            )  # fmt: skip
+        except OSError as error:  # e.g. a port already taken
+            self.server.stop()
+            reason = error.strerror or str(error)
             raise OSError(f"--foxglove: cannot serve on {host} port {port}: {reason}") from None
         logging.getLogger(SDK_CLIENT_LOGGER).addHandler(self._refusals)
-        self.port = self.server.port
+        self.port = self.relay.port
         log.info("Foxglove WebSocket server on ws://%s:%d", host, self.port)
 
     def write(self, outgoing: Outgoing) -> None:
@@ -121,6 +159,7 @@ class FoxgloveServer:
 
     def close(self) -> None:
         logging.getLogger(SDK_CLIENT_LOGGER).removeHandler(self._refusals)
+        self.relay.close()
         self.server.stop()
 
     def send_latched(self, topic: str) -> None:
@@ -188,11 +227,93 @@ class FoxgloveLive:
     def __init__(
         self, session: zenoh.Session, run: str | None = None, host: str = "127.0.0.1",
         port: int = FOXGLOVE_DEFAULT_PORT, config: Ros2Config | None = None,
+        foxglove: FoxgloveConfig = DEFAULT_FOXGLOVE,
     ) -> None:  # fmt: skip
-        self.server = FoxgloveServer(host, port)
+        self.server = FoxgloveServer(host, port, foxglove)
         translate = RunTranslator(self.server.write, config or Ros2Config(), with_foxglove=True)
         self.follower = RunFollower(session, translate, run, TRANSLATED_TOPICS)
 
     def close(self) -> None:
         self.follower.close()
         self.server.close()
+
+
+# ---------------------------------------------------------------------------- entry points
+
+
+def main(
+    config: zenoh.Config,
+    run: str | None = None,
+    foxglove: FoxgloveConfig = DEFAULT_FOXGLOVE,
+    stop: threading.Event | None = None,
+) -> None:
+    """Serve `run` (None: every run) on `foxglove.host`:`foxglove.port` until `stop`.
+
+    Raises ZenohConfigError when the session is refused, OSError when the port cannot be
+    bound, MissingExtraError without the foxglove extra.
+    """
+    session = open_session(config)
+    try:
+        live = FoxgloveLive(session, run, foxglove.host, foxglove.port, foxglove=foxglove)
+        try:
+            log.info("following %s", f"run {run}" if run else "every run")
+            wait_for(stop or threading.Event())
+        finally:
+            live.close()
+            log.info(
+                "stopped: %d clients at most, %d refused, %d handshakes too slow, "
+                "%d clients closed for not reading",
+                live.server.relay.slots.most, live.server.relay.slots.refused,
+                live.server.relay.timed_out, live.server.relay.stalled,
+            )  # fmt: skip
+    finally:
+        session.close()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m services.foxglove",
+        description="Serve the runs to the Foxglove app over the Foxglove SDK's WebSocket "
+        "protocol (docs/interop.md).",
+    )
+    parser.add_argument("--run", default=None, help="run id to follow (default: every run)")
+    parser.add_argument(
+        "--port", type=_port, default=DEFAULT_FOXGLOVE.port,
+        help=f"port to serve on {DEFAULT_FOXGLOVE.host}, 0 for any free one (default: "
+        "%(default)s)",
+    )  # fmt: skip
+    add_zenoh_arguments(parser)
+    return parser
+
+
+def run_cli(argv: list[str] | None = None) -> int:
+    """Parse flags, serve until SIGINT/SIGTERM; 0 on a clean stop, 2 on bad flags, a port
+    or Zenoh config that cannot be used, or no foxglove extra."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.run is not None and (problem := run_id_problem(args.run)) is not None:
+        parser.error(problem)
+    configure_logging(f"foxglove[{args.run or 'all'}]")
+    stop = stop_on_signals()
+    foxglove = replace(DEFAULT_FOXGLOVE, port=args.port)
+    try:
+        main(zenoh_config_from_args(args), args.run, foxglove, stop)
+    except (ZenohConfigError, OSError, MissingExtraError) as error:
+        log.error("%s", error)
+        return EXIT_USAGE
+    return 0
+
+
+def _port(text: str) -> int:
+    """argparse type of a TCP port: 0 (any free one) to 65535."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= MAX_PORT:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port (0 to {MAX_PORT})")
+    return value
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli())

@@ -1,22 +1,26 @@
 """The outside-tool flags of `services.up` and `services.evaluate`, and starting those tools.
 
 * `--record FILE.mcap`: every run as a rosbag2 bag in one MCAP file, in-process
-  (`services.record`); `--record-foxglove FILE.mcap`: their Foxglove channels, a file of
-  their own;
+  (`services.record`: it writes a file and must see the end of the runs);
+  `--record-foxglove FILE.mcap`: their Foxglove channels, a file of their own;
 * `--ros2` (with `--ros-connect ENDPOINT`, `--ros-domain N`): the ROS 2 bridge as a child
   process (`services.ros2`), supervised like the others;
-* `--web [PORT]`: the live browser view, in-process (`services.web`);
-* `--foxglove [PORT]`: the Foxglove SDK's WebSocket server, in-process
-  (`services.bridges.foxglove_live`).
+* `--web [PORT]`: the live browser view (`services.web`), a child process;
+* `--foxglove [PORT]`: the Foxglove SDK's WebSocket server (`services.foxglove`), a child
+  process.
 
-Everything in-process follows the runs on the hub session; every flag's problem (a file
-that exists, a missing extra) is one line before any process starts.
+The web view and the Foxglove server serve sockets to anyone on the machine, so they run
+outside the supervisor, whose death ends the run: supervised children (`viewer_specs`) that
+are restarted when they die and never end a run, joining the hub as the other children do.
+Every flag's problem (a file that exists, a missing extra, a port already taken: probed
+here) is one line before any process starts.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import socket
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -24,11 +28,9 @@ import zenoh
 
 from mapex.config import ConfigError
 from mapex.interop.mcap_file import recording_flags_problem
-from services.bridges.foxglove_live import FOXGLOVE_DEFAULT_PORT, FoxgloveLive
 from services.bridges.record import RunRecorder
 from services.bridges.ros2 import ros_router_problem
-from services.bridges.web import WebView
-from services.config import DEFAULT_WEB, WebConfig
+from services.config import DEFAULT_FOXGLOVE, DEFAULT_WEB, FoxgloveConfig, WebConfig
 from services.supervisor import ProcessSpec
 
 log = logging.getLogger("services.outside_tools")
@@ -63,9 +65,9 @@ def add_outside_tool_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"serve the live browser view on http://127.0.0.1:PORT (default {DEFAULT_WEB.port})",
     )  # fmt: skip
     group.add_argument(
-        "--foxglove", type=int, nargs="?", const=FOXGLOVE_DEFAULT_PORT, default=None,
+        "--foxglove", type=int, nargs="?", const=DEFAULT_FOXGLOVE.port, default=None,
         metavar="PORT", help="serve the run to the Foxglove app on ws://127.0.0.1:PORT "
-        f"(default {FOXGLOVE_DEFAULT_PORT})",
+        f"(default {DEFAULT_FOXGLOVE.port})",
     )  # fmt: skip
 
 
@@ -87,6 +89,39 @@ def check_outside_tool_arguments(args: argparse.Namespace) -> None:
         _require("foxglove", "--foxglove needs the foxglove extra: pip install -e '.[foxglove]'")
     if args.ros2 and args.ros_connect and (problem := ros_router_problem(args.ros_connect)):
         raise ConfigError(problem)  # else the bridge would publish into nothing
+    served = _served_addresses(args)
+    if len(served) == 2 and len(set(served.values())) == 1 and args.web != 0:
+        raise ConfigError(f"--web and --foxglove cannot both serve port {args.web}")
+    for flag, address in served.items():  # taken now: one line, before any child starts
+        if (problem := port_problem(*address)) is not None:
+            raise ConfigError(f"{flag}: {problem}")
+
+
+def _served_addresses(args: argparse.Namespace) -> dict[str, tuple[str, int]]:
+    """(host, port) of the viewers asked for, by flag; ConfigError for a port out of range."""
+    served = {}
+    if args.web is not None:
+        served["--web"] = (DEFAULT_WEB.host, WebConfig(port=args.web).port)
+    if args.foxglove is not None:
+        served["--foxglove"] = (DEFAULT_FOXGLOVE.host, FoxgloveConfig(port=args.foxglove).port)
+    return served
+
+
+def port_problem(host: str, port: int) -> str | None:
+    """Why a server could not listen on `host`:`port` now ("cannot serve on 127.0.0.1 port
+    8000: Address already in use"), or None: a bind probe, closed at once, with
+    SO_REUSEADDR as the servers bind (a port held only by closed connections is free).
+    Port 0 (any free one) is never a problem."""
+    if port == 0:
+        return None
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            probe.bind((host, port))
+    except OSError as error:
+        return f"cannot serve on {host} port {port}: {error.strerror or error}"
+    return None
 
 
 def bridge_spec(args: argparse.Namespace, zenoh_flags: Sequence[str]) -> list[ProcessSpec]:
@@ -98,32 +133,39 @@ def bridge_spec(args: argparse.Namespace, zenoh_flags: Sequence[str]) -> list[Pr
     return [ProcessSpec("ros2-bridge", "services.bridges.ros2", (*extra, *zenoh_flags))]
 
 
+VIEWER_NAMES = ("web", "foxglove")  # the children of `viewer_specs`
+
+
+def viewer_specs(args: argparse.Namespace, zenoh_flags: Sequence[str]) -> list[ProcessSpec]:
+    """The browser view (`--web`) and the Foxglove server (`--foxglove`) children asked for,
+    following every run: servers (`restart=True`) whose exit never ends a run."""
+    specs = []
+    if args.web is not None:
+        web_args = ("--port", str(args.web), *zenoh_flags)
+        specs.append(ProcessSpec("web", "services.bridges.web", web_args, restart=True))
+    if args.foxglove is not None:
+        fox_args = ("--port", str(args.foxglove), *zenoh_flags)
+        specs.append(
+            ProcessSpec("foxglove", "services.bridges.foxglove_live", fox_args, restart=True)
+        )
+    return specs
+
+
+def tool_process_count(args: argparse.Namespace) -> int:
+    """How many child processes the outside tools asked for start (the process caps)."""
+    return len(bridge_spec(args, [])) + len(viewer_specs(args, []))
+
+
 class OutsideTools:
-    """The in-process tools asked for (recording, Foxglove server, browser view), started on
-    `session`; a port that is taken is an OSError (one line) before any child starts."""
+    """The in-process tool asked for (the recording), started on `session`."""
 
     def __init__(self, session: zenoh.Session, args: argparse.Namespace) -> None:
-        self.recorder = self.foxglove = self.web = None
-        try:
-            if args.record is not None or args.record_foxglove is not None:
-                self.recorder = RunRecorder(
-                    session, args.record, foxglove_path=args.record_foxglove
-                )
-            if args.foxglove is not None:
-                self.foxglove = FoxgloveLive(session, port=args.foxglove)
-            if args.web is not None:
-                self.web = WebView(session, None, WebConfig(port=args.web)).start()
-                log.info("browser view at %s", self.web.url)
-        except BaseException:
-            self.close()
-            raise
+        self.recorder = None
+        if args.record is not None or args.record_foxglove is not None:
+            self.recorder = RunRecorder(session, args.record, foxglove_path=args.record_foxglove)
 
     def close(self, runs: Sequence[str] = ()) -> None:
-        """Stop the tools; the recording first waits a little for `runs` to say finished."""
-        if self.web is not None:
-            self.web.close()
-        if self.foxglove is not None:
-            self.foxglove.close()
+        """Stop the recording; it first waits a little for `runs` to say finished."""
         if self.recorder is not None:
             if runs and not self.recorder.wait_finished(runs, RECORD_FINISH_WAIT_S):
                 log.warning("recording closed before every run said finished")

@@ -3,16 +3,20 @@
 Follows every robot of one run (`--run`), or of every run, with
 `services.bridges.follow.RunFollower`, and serves the page, a JSON snapshot (`GET /state`)
 and an event stream (`GET /events`) with the standard library's HTTP server, on loopback
-only unless `--allow-remote`. `WebView` is that server for another process
-(`services.up --web`); the state and the events are `services.bridges.web_state`. Routes,
-event formats, throttling and the page's hooks for tests:
-docs/protocol.md#the-browser-view-http-routes-and-sse-events; what the page shows:
+only unless `--allow-remote`, `WebConfig.max_connections` connections at once (a thread
+each; one more is answered 503), each request's head within `request_timeout_s` and each
+write within `send_timeout_s`, and each stream's queue bounded (`web_state.EventClient`).
+`services.up --web` and `services.evaluate --web` run this command as a child process;
+`WebView` is the server for use inside another process; the state and the events are
+`services.bridges.web_state`. Routes, event formats, throttling and the page's hooks for
+tests: docs/protocol.md#the-browser-view-http-routes-and-sse-events; what the page shows:
 docs/interop.md#the-browser-view-servicesbridgesweb.
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import ipaddress
 import json
 import logging
@@ -33,12 +37,14 @@ import zenoh
 
 from mapex.exit_codes import EXIT_USAGE
 from services.bridges.follow import MAP_KIND_OF_TOPIC, RunFollower, Update
+from services.bridges.gate import LISTEN_BACKLOG, ConnectionSlots, refuse
 from services.bridges.web_state import (
     EventClient,
     MapThrottle,
     ViewState,
     encode_update,
     final_event,
+    frame_key,
     sse_frame,
 )
 from services.config import DEFAULT_WEB, WebConfig
@@ -165,6 +171,11 @@ class WebView:
         with self._lock:
             return len(self._clients)
 
+    @property
+    def connections(self) -> ConnectionSlots:
+        """The HTTP connections served now (`in_use`), at most, and refused at the cap."""
+        return self.server.slots
+
     def start(self) -> WebView:
         """Follow the run(s) and serve, on threads of their own; returns self."""
         self._follower = RunFollower(self.session, self.on_update, self.run)
@@ -191,9 +202,12 @@ class WebView:
             thread.join(self.config.close_timeout_s)
         self.server.server_close()
         dropped = 0 if self._follower is None else self._follower.dropped
+        slots = self.server.slots
         log.info(
-            "stopped: %d events sent, %d malformed messages dropped", self.events_sent, dropped
-        )
+            "stopped: %d events sent, %d malformed messages dropped, %d connections at most, "
+            "%d refused",
+            self.events_sent, dropped, slots.most, slots.refused,
+        )  # fmt: skip
 
     def __enter__(self) -> WebView:
         return self.start()
@@ -204,7 +218,9 @@ class WebView:
     def subscribe(self) -> tuple[EventClient, bytes]:
         """A new stream's client and its first frame, the snapshot, taken atomically with
         the subscription (so every later update reaches the client, none is missed)."""
-        client = EventClient(self.config.client_max_queued_events)
+        client = EventClient(
+            self.config.client_max_queued_events, self.config.client_max_queued_bytes
+        )
         with self._lock:
             snapshot = sse_frame("snapshot", self.state.snapshot())
             if not self._closing.is_set():
@@ -251,17 +267,19 @@ class WebView:
 
     def _broadcast(self, update: Update) -> None:
         """Queue `update`'s event for every client (the lock is held)."""
-        self._send(sse_frame("update", encode_update(update)))
+        self._send(sse_frame("update", encode_update(update)), frame_key(update))
 
-    def _send(self, frame: bytes) -> None:
-        """Queue `frame` for every client (the lock is held); drop clients too far behind."""
+    def _send(self, frame: bytes, key: tuple | None = None) -> None:
+        """Queue `frame` for every client, in place of its queued frame of `key` (the lock
+        is held); drop clients too far behind."""
         self.events_sent += 1
         for client in list(self._clients):
-            if not client.push(frame) and not self._closing.is_set():  # closing: it drains
+            if not client.push(frame, key) and not self._closing.is_set():  # closing: it drains
                 self._clients.discard(client)
                 log.info(
-                    "dropped a stream %d events behind (its browser reconnects)",
+                    "dropped a stream %d events or %d bytes behind (its browser reconnects)",
                     self.config.client_max_queued_events,
+                    self.config.client_max_queued_bytes,
                 )
 
 
@@ -269,15 +287,39 @@ class WebView:
 
 
 class _ViewServer(ThreadingHTTPServer):
-    """A threading HTTP server that knows its view; IPv6 when the host is an IPv6 address."""
+    """A threading HTTP server that knows its view; IPv6 when the host is an IPv6 address.
+
+    It serves at most `max_connections` connections at once, a thread each: one more is
+    answered 503 and closed at once, on the accepting thread.
+    """
 
     daemon_threads = True  # open streams never hold the process
+    request_queue_size = LISTEN_BACKLOG
 
     def __init__(self, address: tuple[str, int], handler: type, view: WebView) -> None:
         self.view = view
+        self.slots = ConnectionSlots(view.config.max_connections)
         if ":" in address[0]:
             self.address_family = socket.AF_INET6
         super().__init__(address, handler)
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        """Serve the connection on a thread of its own while a slot is free, else refuse it."""
+        if not self.slots.take():
+            refuse(request)
+            log.debug("refused %s: %d connections served", client_address, self.slots.limit)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self.slots.give_back()
+            raise
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self.slots.give_back()
 
     def server_bind(self) -> None:
         """Bind without HTTPServer's reverse DNS lookup of the host (it can stall offline)."""
@@ -293,11 +335,51 @@ class _ViewServer(ThreadingHTTPServer):
             log.exception("failed to answer %s", client_address)
 
 
+class _DeadlineReader(io.RawIOBase):
+    """A connection's bytes, read until `deadline` (time.monotonic) at the latest: a read
+    past it raises TimeoutError; None: no deadline (the socket's own timeout)."""
+
+    def __init__(self, connection: socket.socket, deadline: float | None) -> None:
+        super().__init__()
+        self.connection, self.deadline = connection, deadline
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buffer: Any) -> int:
+        if self.deadline is not None:
+            left = self.deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError("the request's head did not arrive in time")
+            self.connection.settimeout(left)
+        return self.connection.recv_into(buffer)
+
+
 class _Handler(BaseHTTPRequestHandler):
-    """GET the page's files, /state and /events; everything else is 404."""
+    """GET the page's files, /state and /events; everything else is 404.
+
+    The request's line and headers must arrive within `request_timeout_s` of the
+    connection's start, and every write is given `send_timeout_s`: a timeout ends the
+    connection (BaseHTTPRequestHandler logs it and closes)."""
 
     server: _ViewServer
     server_version = "mapex-web"
+
+    def setup(self) -> None:
+        super().setup()
+        config = self.server.view.config
+        self.rfile.close()  # the buffered file of the socket, replaced by one with a deadline
+        self._head_reader = _DeadlineReader(
+            self.connection, time.monotonic() + config.request_timeout_s
+        )
+        self.rfile = io.BufferedReader(self._head_reader)
+
+    def parse_request(self) -> bool:
+        """Read the headers (within the deadline), then give writes their own timeout."""
+        parsed = super().parse_request()
+        self._head_reader.deadline = None
+        self.connection.settimeout(self.server.view.config.send_timeout_s)
+        return parsed
 
     def do_GET(self) -> None:  # noqa: N802 (the name http.server dispatches to)
         view = self.server.view

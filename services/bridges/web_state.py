@@ -5,7 +5,9 @@ and the server-sent events made of it, with no HTTP and no Zenoh in it.
 and the trajectory, for the snapshot a page starts from; `encode_update` turns one update
 into the JSON of its event (maps as base64 of their uint8 cells); `MapThrottle` thins map
 events per robot and kind, always letting the newest through; `RunRecord.final` says how a
-run ended once every robot of it said so; `EventClient` is one browser's queue of frames.
+run ended once every robot of it said so; `EventClient` is one browser's queue of frames,
+bounded in frames and bytes, where a newer map replaces the older one still queued
+(`frame_key`: latest wins).
 """
 
 from __future__ import annotations
@@ -16,13 +18,13 @@ import logging
 import math
 import threading
 from collections import OrderedDict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from services.bridges.follow import FINAL_STATES, Update
+from services.bridges.follow import FINAL_STATES, MAP_KIND_OF_TOPIC, Update
 from services.config import DEFAULT_WEB, WebConfig
 from services.messages import (
     FrontiersMessage,
@@ -104,6 +106,14 @@ def final_event(run: str, final: dict[str, Any] | None) -> dict[str, Any]:
     """The data of a `final` event: how `run` ended (`RunRecord.final`), null again when a
     robot that has not ended joined it."""
     return {"run": run, "final": final}
+
+
+def frame_key(update: Update) -> tuple[str, str | None, str] | None:
+    """The key under which `update`'s event replaces an older one still queued for a slow
+    stream (`EventClient`): (run, robot, topic) for a map (`MAP_KIND_OF_TOPIC`: the large
+    events, whose newest is all a page draws), None for every other topic (small events,
+    each of which a page keeps: a pose extends the trajectory, a status may end the run)."""
+    return (update.run, update.robot, update.topic) if update.topic in MAP_KIND_OF_TOPIC else None
 
 
 def _step(update: Update) -> int | None:
@@ -279,27 +289,64 @@ class ViewState:
 # ---------------------------------------------------------------------------- event clients
 
 
+class _Queued:
+    """One queued frame and the key it may be replaced under (compared by identity)."""
+
+    __slots__ = ("frame", "key")
+
+    def __init__(self, frame: bytes, key: Hashable | None) -> None:
+        self.frame, self.key = frame, key
+
+
 class EventClient:
     """The frames waiting for one `/events` stream, filled by `WebView`, drained by its
-    handler thread. Closed when it overflows (a stalled browser: what is queued is dropped)
-    or when the view closes (what is queued is still sent, e.g. a run's final status)."""
+    handler thread; its memory is bounded whether or not the browser reads.
 
-    def __init__(self, max_queued_events: int) -> None:
-        self.max_queued_events = max_queued_events
-        self._frames: deque[bytes] = deque()
+    A frame pushed with a `key` (`frame_key`: a robot's map of one kind) replaces the frame
+    of that key still queued (latest wins: the older one is dropped, the newer one queued
+    last, so the order of the rest is kept).
+    Closed when it overflows, `max_queued_events` frames or `max_queued_bytes` bytes (a
+    stalled browser: what is queued is dropped; the browser reconnects and starts from a
+    fresh snapshot), or when the view closes (what is queued is still sent, e.g. a run's
+    final status)."""
+
+    def __init__(
+        self, max_queued_events: int, max_queued_bytes: int = DEFAULT_WEB.client_max_queued_bytes
+    ) -> None:
+        self.max_queued_events, self.max_queued_bytes = max_queued_events, max_queued_bytes
+        self.queued_bytes = 0
+        self.replaced = 0  # frames dropped for a newer one of their key
+        self._frames: deque[_Queued] = deque()
+        self._keyed: dict[Hashable, _Queued] = {}
         self._changed = threading.Condition()
         self.closed = False
 
-    def push(self, frame: bytes) -> bool:
-        """Queue `frame`; False (and the client is closed) when it is closed or too far behind."""
+    def __len__(self) -> int:
         with self._changed:
-            if not self.closed and len(self._frames) >= self.max_queued_events:
+            return len(self._frames)
+
+    def push(self, frame: bytes, key: Hashable | None = None) -> bool:
+        """Queue `frame` (in place of the queued frame of `key`, if any); False (and the
+        client is closed) when it is closed or too far behind."""
+        with self._changed:
+            if not self.closed and key is not None and (older := self._keyed.pop(key, None)):
+                self._frames.remove(older)
+                self.queued_bytes -= len(older.frame)
+                self.replaced += 1
+            if not self.closed and (
+                len(self._frames) >= self.max_queued_events
+                or self.queued_bytes + len(frame) > self.max_queued_bytes
+            ):
                 self.closed = True
-                self._frames.clear()
+                self._clear()
             if self.closed:
                 self._changed.notify_all()
                 return False
-            self._frames.append(frame)
+            queued = _Queued(frame, key)
+            self._frames.append(queued)
+            if key is not None:
+                self._keyed[key] = queued
+            self.queued_bytes += len(frame)
             self._changed.notify_all()
             return True
 
@@ -309,7 +356,7 @@ class EventClient:
         with self._changed:
             self.closed = True
             if not drain:
-                self._frames.clear()
+                self._clear()
             self._changed.notify_all()
 
     def next_frame(self, timeout_s: float) -> bytes | None:
@@ -318,5 +365,14 @@ class EventClient:
         with self._changed:
             self._changed.wait_for(lambda: self._frames or self.closed, timeout_s)
             if self._frames:
-                return self._frames.popleft()
+                queued = self._frames.popleft()
+                if queued.key is not None:
+                    del self._keyed[queued.key]
+                self.queued_bytes -= len(queued.frame)
+                return queued.frame
             return None if self.closed else KEEPALIVE_FRAME
+
+    def _clear(self) -> None:
+        self._frames.clear()
+        self._keyed.clear()
+        self.queued_bytes = 0

@@ -4,6 +4,7 @@ each one line on stderr and exit 2, before any process starts or any data is rea
 
 from __future__ import annotations
 
+import json
 import os
 
 import numpy as np
@@ -11,8 +12,11 @@ import pytest
 from commands_at_once import run_python_m
 from service_processes import free_loopback_port
 
+from mapex.config import WorldConfig
+
 FORGED_SHAPE = (200_000, 200_000)  # 40 GB of uint8 claimed by a 100-byte file
 COMMAND_TIMEOUT_S = 120  # a command that reads /dev/zero or waits on a FIFO runs into this
+MAX_STARTS = WorldConfig().max_starts
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +31,10 @@ def inputs(tmp_path_factory) -> dict[str, str]:
         handle.write(bytes(16))
     np.save(forged / "valid_space.npy", np.ones((4, 4), np.uint8))
     os.mkfifo(root / "starts.fifo")
-    return {"forged": str(forged), "fifo": str(root / "starts.fifo"), "out": str(root / "out")}
+    many = root / "many-starts.json"  # one start more than world.max_starts, each a good one
+    many.write_text(json.dumps({"generated:0": [[20, 30]] * (MAX_STARTS + 1)}))
+    return {"forged": str(forged), "fifo": str(root / "starts.fifo"), "many": str(many),
+            "out": str(root / "out")}  # fmt: skip
 
 
 def _listen() -> list[str]:
@@ -56,6 +63,20 @@ CASES = {
     "evaluate FIFO starts": (
         EVALUATE + ["--maps", "generated:0", "--starts-file", "{fifo}"],
         "starts.fifo is not a regular file (a FIFO)",
+    ),
+    # issue #64 item 7: more starts than world.max_starts, refused before any is judged (each
+    # took 61 ms, so 200 k ran for hours in silence)
+    "evaluate many starts in a file": (
+        EVALUATE + ["--maps", "generated:0", "--starts-file", "{many}"],
+        f"many-starts.json: more than world.max_starts ({MAX_STARTS}) starts",
+    ),
+    "evaluate many --starts": (
+        EVALUATE + ["--maps", "generated:0", "--starts", ",".join(["0"] * (MAX_STARTS + 1))],
+        f"--starts ({MAX_STARTS + 1}): more than world.max_starts ({MAX_STARTS}) starts",
+    ),
+    "audit many --starts": (
+        AUDIT + ["--starts", str(MAX_STARTS + 1)],
+        f"--starts ({MAX_STARTS + 1}): more than world.max_starts ({MAX_STARTS}) starts",
     ),
     # defect 8: team and pool sizes are capped by what the machine holds
     "run robots": (

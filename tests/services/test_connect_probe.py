@@ -84,6 +84,35 @@ def test_connect_to_nothing_fails_at_once_before_any_child(command, mode, tmp_pa
     assert took_s < ANSWER_DEADLINE_S
 
 
+@pytest.mark.parametrize("command", ["services.up", "services.evaluate"])
+def test_a_config_file_naming_a_hub_that_is_not_there_fails_at_once(command, tmp_path):
+    """`--config FILE` alone, FILE in client mode connecting to where nothing listens: the
+    run joins what the file names, so it is probed as `--connect` is (issue #64, item 8: the
+    file's endpoints were ignored and the run served a hub of its own)."""
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    config = tmp_path / "client.json5"
+    config.write_text(f'{{ mode: "client", connect: {{ endpoints: ["{endpoint}"] }} }}')
+    args = [sys.executable, "-m", command, "--config", str(config), "--steps", "5"]
+    args += ["--out", str(tmp_path / "out"), "--no-progress", "--members", "none"]
+    # were the file ignored, the default hub served here must not be the machine's 7447
+    args += ["--set", f"services.hub_endpoint=tcp/127.0.0.1:{free_loopback_port()}"]
+    args += (
+        ["--maps", "generated:0", "--methods", "nearest"] if command == "services.evaluate" else []
+    )
+    began = time.monotonic()
+    completed = subprocess.run(
+        args, cwd=REPO_ROOT, capture_output=True, text=True, timeout=ANSWER_DEADLINE_S + 60
+    )
+    took_s = time.monotonic() - began
+    assert completed.returncode == EXIT_USAGE, completed.stderr
+    assert "Traceback" not in completed.stderr and "started" not in completed.stderr
+    last = completed.stderr.strip().splitlines()[-1]
+    assert (
+        f"nothing answers at --connect {endpoint} (connection refused) (named in {config})" in last
+    )
+    assert took_s < ANSWER_DEADLINE_S
+
+
 def test_the_taken_hub_refusal_suggests_a_join_that_works():
     """The suggested flags parse and name an endpoint that answers; in client mode, so
     every child is a client of that hub and the run cannot go on without it."""

@@ -14,17 +14,20 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from commands_at_once import run_python_m
 from service_processes import REPO_ROOT, free_loopback_port, until
 from shard_runs import comparable_tables, pool_warnings, run_records
 from up_processes import pid_alive
 
+import mapex.worlds.starts as starts_module
 from mapex.budget import auto_steps
-from mapex.config import ExplorationConfig
+from mapex.config import ConfigError, ExplorationConfig, WorldConfig
 from mapex.episode import run_episode
 from mapex.results import write_results
 from mapex.worlds import load_world
+from mapex.worlds.starts import eligible_start_cells
 from services.config import RunConfig, ServicesConfig
 from services.evaluate import (
     BROKEN_DIR,
@@ -201,6 +204,39 @@ def test_a_malformed_starts_file_is_refused(tmp_path, text, message):
     (tmp_path / "s.json").write_text(text)
     with pytest.raises(ValueError, match=re.escape(message)):
         read_starts_file(tmp_path / "s.json")
+
+
+def test_the_starts_of_a_file_are_judged_at_once(tmp_path, monkeypatch):
+    """A map's starts cost the map computations of one start, however many there are (issue
+    #64, item 7: they were two per start, 61 ms, so 200 k starts ran > 300 s silently)."""
+    world = load_world("generated:0")
+    cells = np.argwhere(eligible_start_cells(world, 3))[::97][:300].tolist()
+    calls = []
+    real = starts_module.main_free_space
+    monkeypatch.setattr(starts_module, "main_free_space", lambda w: calls.append(1) or real(w))
+    counts = []
+    for starts in (cells[:1], cells):
+        path = tmp_path / "starts.json"
+        path.write_text(json.dumps({"generated:0": starts}))
+        calls.clear()
+        episodes = plan_episodes(["generated:0"], ["nearest"], read_starts_file(path), [0])
+        assert [list(e.start) for e in episodes] == starts
+        counts.append(len(calls))
+    assert counts[1] == counts[0] <= 2
+
+
+def test_more_starts_than_the_cap_are_refused_before_the_file_is_parsed_past_them(tmp_path):
+    path = tmp_path / "starts.json"
+    capped = WorldConfig(max_starts=3)
+    path.write_text('{"a": [[1, 2], [3, 4]], "b": [[5, 6]]}')
+    assert read_starts_file(path, world=capped) == {"a": [(1, 2), (3, 4)], "b": [(5, 6)]}
+    path.write_text('{"a": [[1, 2], [3, 4]], "b": [[5, 6], [7, 8]], "c": ')  # unfinished
+    with pytest.raises(ConfigError) as refused:
+        read_starts_file(path, world=capped)
+    assert str(refused.value) == (
+        f"starts file {path}: more than world.max_starts (3) starts; "
+        "--set world.max_starts=N raises the cap"
+    )
 
 
 SHORT = ExplorationConfig(steps=20)

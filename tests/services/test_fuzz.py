@@ -7,6 +7,10 @@ each is mutated at the msgpack level (a field dropped, retyped, made huge, negat
 an array header lying about its shape or dtype, another type or schema) or at the byte
 level (flips, truncation, junk appended), and sent to a key a service listens on: a query
 to every queryable, a put to every subscribed topic. Bounded in count and in time.
+Meanwhile a rogue answers every step query of the run with forged replies (the team
+finished, a teleport), and oversized but valid payloads (31 MiB of empty msgpack maps, a
+claim larger than the world) go to the world and the workers, whose peak memory must not
+grow by more than `PEAK_GROWTH_BYTES`.
 
 The same episode in one process, which the run must equal, is computed beside the run (a
 `python -m mapex run` child) rather than after it: tens of seconds of CPU on this floor.
@@ -36,7 +40,7 @@ from services.keys import (
     robot_key,
     run_key,
 )
-from services.messages import ErrorReply, PredictRequest, StepRequest
+from services.messages import ErrorReply, PredictRequest, StepReply, StepRequest, WorldInfo
 from services.zenoh_config import open_session, zenoh_config
 
 FLOOR = "50015847"  # the largest KTH development floor: a run long enough to fuzz
@@ -46,6 +50,8 @@ METHOD = "mapex"  # predicts at every re-plan: the run lasts while the fuzz goes
 MESSAGES = 3000  # in all, spread over every key
 TIME_BUDGET_S = 120.0  # the fuzzing stops here even if fewer were sent
 SEED = 53
+BIG_BYTES = 31 * 2**20  # under the 32 MiB message limit
+PEAK_GROWTH_BYTES = 400 * 2**20  # of a process's peak memory (VmHWM) under big payloads
 
 
 def real_messages(session) -> list[bytes]:
@@ -157,6 +163,84 @@ def answering(session) -> bool:
     return len(workers) == 4
 
 
+def message_type(payload: bytes) -> str:
+    """The `type` of an encoded message."""
+    return msgpack.unpackb(payload, raw=False).get("type", "")
+
+
+def empty_maps(size_bytes: int, type_name: str) -> bytes:
+    """A valid msgpack message of `type_name` whose one field is a list of empty maps."""
+    head = msgpack.packb({"schema": 1, "type": type_name}, use_bin_type=True)
+    count = size_bytes - len(head) - 16
+    field = msgpack.packb("cells") + b"\xdd" + count.to_bytes(4, "big") + b"\x80" * count
+    return bytes([head[0] + 1]) + head[1:] + field  # one more field in the map
+
+
+def big_claim(shape: tuple[int, int]) -> bytes:
+    """A well-formed step request claiming cells of a map 16 times the world's."""
+    visible = np.ones((shape[0] * 4, shape[1] * 4), dtype=bool)
+    cells = np.array([[1, 1]], dtype=np.int32)
+    return StepRequest(1, cells, False, True, (1, 1), 1.0, visible).encode()
+
+
+def peak_bytes(pid: int) -> int:
+    """The peak resident memory (VmHWM) of process `pid`."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) * 1024
+    raise AssertionError(f"no VmHWM for {pid}")
+
+
+def service_pids(endpoint: str, modules: tuple[str, ...]) -> list[int]:
+    """The processes of `modules` (python -m) connected to `endpoint`."""
+    pids = []
+    for status in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            argv = status.read_bytes().split(b"\0")
+        except OSError:
+            continue
+        words = [a.decode(errors="replace") for a in argv]
+        if endpoint in words and any(m in words for m in modules):
+            pids.append(int(status.parent.name))
+    return pids
+
+
+def send_big_payloads(session, shape: tuple[int, int], worker_keys: list[str]) -> None:
+    """Oversized but valid payloads to the world's step key and every worker's predict key."""
+    step = robot_key(RUN, "r0", "step")
+    for key, payload in [
+        (step, empty_maps(BIG_BYTES, "step_request")),
+        (step, big_claim(shape)),
+        *[(key, empty_maps(BIG_BYTES, "predict_request")) for key in worker_keys],
+    ]:
+        list(session.get(key, payload=payload, timeout=20.0))
+
+
+def forge_step_replies(session, shape: tuple[int, int]):
+    """A rogue queryable answering every step query of the run with forged replies: the
+    team finished, and the robot at the other end of the map. Undeclare when done."""
+    lost = np.zeros(1, bool)
+    none = {"stood_still": lost, "claim_state": np.zeros(1, np.uint8),
+            "claim_goals": np.zeros((1, 2), np.int32), "claim_scores": np.zeros(1),
+            "claim_visible": np.zeros((0, *shape), bool), "lost": lost}  # fmt: skip
+    rays = 2500
+
+    def forge(query) -> None:
+        try:
+            seq = StepRequest.decode(query.payload.to_bytes()).seq
+        except Exception:  # noqa: BLE001 (the fuzz's own garbage)
+            return
+        finished = StepReply(seq, True, np.zeros((0, 2), np.int32), np.zeros((0, rays), np.uint16),
+                             np.zeros((0, rays), bool), **none)  # fmt: skip
+        corner = np.array([[shape[0] - 2, shape[1] - 2]], np.int32)
+        far = StepReply(seq, False, corner, np.ones((1, rays), np.uint16),
+                        np.zeros((1, rays), bool), **none)  # fmt: skip
+        for reply in (finished, far):
+            query.reply(query.key_expr, reply.encode())
+
+    return session.declare_queryable(robot_key(RUN, "r0", "step"), forge)
+
+
 def start_alone(world_spec: str, out: Path, log_path: Path) -> subprocess.Popen:
     """The episode in one process (`python -m mapex run`: corner 0, seed 0, the default
     settings and ensemble, as the run's) with one torch thread, as a worker computes."""
@@ -194,8 +278,17 @@ def test_thousands_of_mutated_messages_on_every_key_harm_no_process_and_no_resul
         seeds = real_messages(session)
         types = {msgpack.unpackb(s, raw=False).get("type") for s in seeds}
         assert {"world_info", "ground_truth", "health", "predict_reply", "step_request"} <= types
+        (info,) = [WorldInfo.decode(s) for s in seeds if message_type(s) == "world_info"][:1]
+        rogue = forge_step_replies(session, info.shape)
         sent = fuzz(session, seeds, worker_keys)
         assert sent >= 1000, sent
+        pids = service_pids(endpoint, ("services.world", "services.predictor"))
+        assert len(pids) == 5, pids  # the world and four workers
+        peaks = {pid: peak_bytes(pid) for pid in pids}
+        send_big_payloads(session, info.shape, worker_keys[:4])
+        grown = {pid: peak_bytes(pid) - peaks[pid] for pid in pids}
+        assert max(grown.values()) < PEAK_GROWTH_BYTES, grown
+        rogue.undeclare()
         assert up.process.poll() is None, "the run ended before the fuzz did: make it longer"
         assert answering(session), up.log()
         assert up.wait() == 0, up.log()

@@ -34,6 +34,7 @@ WATCHED = ServicesConfig(
     health_probe_timeout_s=0.5,
     unresponsive_after_s=2.0,
     implausible_share=1.0,  # a random-weight network (services/ensemble_client.py)
+    consensus_max_disagreement=1.0,
 )
 START_DEADLINE_S = 60.0
 

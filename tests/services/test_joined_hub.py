@@ -10,9 +10,11 @@ loopback); the joined run is a real `services.up --connect` in its default peer 
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import threading
 import time
+from pathlib import Path
 
 from service_processes import (
     STOP_DEADLINE_S,
@@ -29,6 +31,7 @@ from services.config import ServicesConfig
 from services.evaluate import Episode, run_episodes
 from services.keys import robot_key
 from services.pool import HubWatch
+from services.supervisor import endpoint_silence
 from services.zenoh_config import open_session, zenoh_config
 
 GRACE_S = 1.0  # services.hub_lost_grace_s of the joined run
@@ -74,6 +77,85 @@ def test_a_run_joined_to_a_hub_ends_when_the_hub_goes(tmp_path):
         if up is not None:
             up.kill()
         kill_router(hub)
+
+
+def test_a_run_joined_by_its_config_file_uses_that_hub_listens_nowhere_and_ends_with_it(
+    tmp_path,
+):
+    """`services.up --config FILE` alone, FILE in client mode connecting to a hub (the form
+    deploy/README.md shows): the run joins that hub as `--mode client --connect` would, and
+    ends when it goes. Nothing of the run listens on any port, neither the default hub's
+    nor another (issue #64, item 8: the file's mode and endpoints were ignored and the run
+    served a hub of its own, its world and planners clients of it)."""
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    default_hub = f"tcp/127.0.0.1:{free_loopback_port()}"  # where it served its own hub
+    config = tmp_path / "runner.json5"
+    config.write_text(
+        f'{{ mode: "client", connect: {{ endpoints: ["{endpoint}"] }}, '
+        "scouting: { multicast: { enabled: false } } }"
+    )
+    hub = spawn_router(tmp_path, endpoint)
+    up = None
+    try:
+        wait_router_ready(hub)
+        up = UpProcess(
+            tmp_path / "joined.log", "--config", str(config), "--members", "none",
+            "--method", "nearest", "--world", "generated:0", "--steps", str(RUN_STEPS),
+            "--run-prefix", "joined", "--out", str(tmp_path / "runs"),
+            "--set", f"services.hub_endpoint={default_hub}",
+            "--set", f"services.hub_lost_grace_s={GRACE_S}",
+            "--set", "services.workers_wait_s=0.5",  # nearest asks no worker
+        )  # fmt: skip
+        _until_stepping_through(endpoint, up)
+        run = [up.process.pid] + [pid for pids in up.children().values() for pid in pids]
+        assert len(run) >= 3, up.log()  # services.up, its world and its planner
+        assert listening_ports(run) == set(), up.log()
+        assert endpoint_silence(default_hub, 1.0) == "connection refused"
+        hub.process.send_signal(signal.SIGINT)
+        hub.process.wait(STOP_DEADLINE_S)
+        assert up.wait(ENDED_DEADLINE_S) == EXIT_FAILED, up.log()
+        errors = [line for line in up.log().splitlines() if " ERROR " in line]
+        assert errors and f"the hub at --connect {endpoint} is gone" in errors[0], up.log()
+        assert "Traceback" not in up.log()
+    finally:
+        if up is not None:
+            up.kill()
+        kill_router(hub)
+
+
+def _until_stepping_through(endpoint: str, up: UpProcess) -> None:
+    """Wait until the run's robot `joined-0/r0` steps, as a client of the hub at `endpoint`
+    hears it."""
+    poses: list[bytes] = []
+    with open_session(zenoh_config("client", [endpoint])) as follower:
+        follower.declare_subscriber(robot_key("joined-0", "r0", "pose"), lambda s: poses.append(s))
+
+        def stepping() -> bool:
+            if up.process.poll() is not None:
+                raise AssertionError(f"services.up exited early:\n{up.log()}")
+            return len(poses) > 1
+
+        until(stepping, "the joined run to step", STARTED_DEADLINE_S)
+
+
+def listening_ports(pids: list[int]) -> set[int]:
+    """The TCP ports the processes `pids` listen on (their sockets in /proc/net/tcp{,6})."""
+    sockets = set()
+    for pid in pids:
+        for fd in Path(f"/proc/{pid}/fd").iterdir():
+            try:
+                target = os.readlink(fd)
+            except FileNotFoundError:  # closed meanwhile
+                continue
+            if target.startswith("socket:["):
+                sockets.add(target[len("socket:[") : -1])
+    ports = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[3] == "0A" and fields[9] in sockets:  # 0A: LISTEN
+                ports.add(int(fields[1].rsplit(":", 1)[1], 16))
+    return ports
 
 
 def test_hub_watch_ends_only_a_joined_run_that_lost_its_router(tmp_path):

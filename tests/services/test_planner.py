@@ -245,3 +245,38 @@ def test_a_planner_whose_world_answers_invalid_steps_exits_1_with_one_line(
         assert len(errors) == 1 and "Traceback" not in log, log
         assert "the world's reply is invalid" in errors[0] and INVALID[case] in errors[0], log
         assert not (tmp_path / "runs" / _run_of(case)).exists()
+
+
+def test_a_step_query_that_times_out_is_asked_again_not_fatal(hub, fake_world):
+    """Zenoh ends a query nobody answered in time with the error payload `Timeout`: the
+    planner asks again (`step_retries` x `step_timeout_s`), it is not an invalid reply."""
+    run, held = "fake-held-once", []
+    good = _reply_variants(fake_world)["good"]
+    info, truth = fake_world.world_info().encode(), fake_world.ground_truth().encode()
+
+    def step(query) -> None:
+        if not held:
+            held.append(query)  # the first query: held past its timeout, never answered
+        else:
+            query.reply(query.key_expr, good)
+
+    def serve(payload: bytes):
+        return lambda query: query.reply(query.key_expr, payload)
+
+    queryables = [
+        hub[0].declare_queryable(f"mapex/@v1/{run}/world_info", serve(info)),
+        hub[0].declare_queryable(f"mapex/@v1/{run}/ground_truth", serve(truth)),
+        hub[0].declare_queryable(f"mapex/@v1/{run}/r0/step", step),
+    ]
+    session = open_session(zenoh_config(connect=[hub[1]], listen=[]))
+    services = ServicesConfig(step_timeout_s=0.5, team_step_wait_s=0.5)
+    try:
+        source = ZenohWorld(session, run, 0, services)
+        source.fetch(timeout_s=10.0)
+        (scan,) = source.initial()
+    finally:
+        session.close()
+        for queryable in queryables:
+            queryable.undeclare()
+        held.clear()
+    assert scan.pose == fake_world.starts[0]

@@ -43,7 +43,7 @@ from services.zenoh_config import open_session, zenoh_config
 
 # random-weight networks contradict the known cells of their crops: no plausibility check
 # (services/ensemble_client.py `implausibility`; tests/services/test_rogue_workers.py)
-UNCHECKED = {"implausible_share": 1.0}
+UNCHECKED = {"implausible_share": 1.0, "consensus_max_disagreement": 1.0}  # random weights
 FAST = ServicesConfig(predict_timeout_s=3.0, liveliness_query_timeout_s=1.0, **UNCHECKED)
 START_DEADLINE_S = 60.0  # six workers import torch at once on a shared 2-core machine
 QUANTUM = 1 / 255  # uint8 replies, plus float noise between processes

@@ -15,12 +15,19 @@ from mapex.sensor import Scan
 from mapex.worlds.base import World
 from services.codec import (
     ProtocolError,
+    count_objects,
     dequantise_probability,
     encode_array,
     quantise_probability,
 )
 from services.config import ServicesConfig
-from services.messages import CLAIM_FIELDS, STEP_REPLY_ARRAYS, StepReply, step_key
+from services.messages import (
+    CLAIM_FIELDS,
+    STEP_REPLY_ARRAYS,
+    StepReply,
+    map_message_bytes,
+    step_key,
+)
 from services.protocol import (
     ROBOT_TOPICS,
     AliveKey,
@@ -802,3 +809,48 @@ def test_corrupted_payloads_decode_or_raise_protocol_errors_only(message):
 def test_bad_messages_are_refused_when_built(build, match):
     with pytest.raises(ValueError, match=match):
         build()
+
+
+def _objects_in(value) -> int:
+    """The msgpack objects of an unpacked value, counted the slow way."""
+    if isinstance(value, dict):
+        return 1 + sum(_objects_in(k) + _objects_in(v) for k, v in value.items())
+    if isinstance(value, list):
+        return 1 + sum(_objects_in(v) for v in value)
+    return 1
+
+
+@pytest.mark.parametrize("message", _sample_messages(), ids=lambda m: m.TYPE)
+def test_objects_are_counted_from_their_headers_as_the_unpacker_sees_them(message):
+    payload = message.encode()
+    unpacked = msgpack.unpackb(payload, raw=False)
+    assert count_objects(payload, 10**6) == _objects_in(unpacked)
+    values = [1, -5, 2**40, -(2**40), 1.5, "x" * 300, b"y" * 70000, None, True,
+              {"a": [{}, []]}, msgpack.ExtType(3, b"zz")]  # fmt: skip
+    odd = msgpack.packb(values, use_bin_type=True)
+    assert count_objects(odd, 10**6) == 1 + 11 + 4
+
+
+def test_a_payload_of_millions_of_empty_maps_is_refused_before_unpacking():
+    """31 MiB of empty maps in one valid message were 31 M Python objects (3 GB)."""
+    count = 31 * 2**20
+    payload = b"\x83" + msgpack.packb("schema") + b"\x01" + msgpack.packb("type")
+    payload += msgpack.packb("step_request") + msgpack.packb("cells")
+    payload += b"\xdd" + count.to_bytes(4, "big") + b"\x80" * count
+    with pytest.raises(ProtocolError, match="more than 65536 msgpack objects"):
+        decode_message(payload)
+
+
+def test_a_receiver_s_own_limit_bounds_payload_and_decoded_arrays():
+    """A map message cannot exceed what the receiver's run holds: the payload, and a
+    compressed array claiming more cells than that, are refused before any array is made."""
+    visible = np.ones((400, 400), dtype=bool)  # compresses to a few hundred bytes
+    cells = np.array([[1, 1]], dtype=np.int32)
+    payload = StepRequest(1, cells, False, True, (1, 1), 1.0, visible).encode()
+    limit = map_message_bytes(100 * 100)  # a world of 10 000 cells
+    assert len(payload) < limit
+    with pytest.raises(ProtocolError, match="over the decoded-size limit"):
+        StepRequest.decode(payload, max_bytes=limit)
+    assert StepRequest.decode(payload, max_bytes=map_message_bytes(400 * 400)).claimed
+    with pytest.raises(ProtocolError, match="exceeds the 100-byte limit"):
+        StepRequest.decode(payload, max_bytes=100)

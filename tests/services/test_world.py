@@ -69,6 +69,8 @@ DEFAULTS = ExplorationConfig()
 DRIVE, RETRY, BAD, SET, SIGINT = "drive_test", "retry_test", "bad_test", "set_test", "sigint_test"
 SNIFFED = "sniffed_test"  # a team world with a run token, whose step queries are read
 SNIFFED_TOKEN = "the-victim-s-run-token-7d1e0c"
+FORGED, FORGED_PLAIN = "forged_test", "forged_plain_test"  # rogues answer their step queries
+FORGED_TOKEN = "the-forged-run-s-token-51aa3f"
 SET_ITEMS = ("motion.cells_per_step=2", "sensor.n_rays=360", "services.team_step_wait_s=0.5")
 WORLDS = {
     DRIVE: ((0, 2), ()),  # a team of two, both driven in lockstep and compared
@@ -77,8 +79,13 @@ WORLDS = {
     SET: ((1, 3), SET_ITEMS),  # only r0 drives: r1 is waited for 0.5 s, then stands still
     SIGINT: ((1,), ()),
     SNIFFED: ((0, 2), ()),
+    FORGED: ((0,), ()),
+    FORGED_PLAIN: ((0,), ()),
 }
-TOKENS = {SNIFFED: SNIFFED_TOKEN}  # MAPEX_RUN_TOKEN of the world processes that have one
+TOKENS = {
+    SNIFFED: SNIFFED_TOKEN,
+    FORGED: FORGED_TOKEN,
+}  # MAPEX_RUN_TOKEN of the world processes that have one
 
 
 def random_walk(occupancy: np.ndarray, start, n_steps: int, cells_per_step: int, seed: int):
@@ -491,6 +498,83 @@ def test_a_sniffer_of_step_queries_can_neither_read_the_token_nor_step_a_robot(h
     log = worlds.log_of(SNIFFED)
     assert "without this run's token's signature" in log and "Traceback" not in log
     assert "standing still" not in log and "refused motion" not in log
+
+
+def _forged_replies(seq: int, truth: GroundTruth, far: tuple[int, int]) -> list[Message]:
+    """What a rogue answers a step query of seq `seq` with: the team finished, the robot
+    teleported to `far` (a true scan there), and a refusal."""
+    world = truth.to_world("forged", 0.1)
+    scan = Simulator(world, [far], DEFAULTS.sensor, DEFAULTS.motion).scan(0)
+    one = {
+        "stood_still": np.zeros(1, bool), "claim_state": np.zeros(1, np.uint8),
+        "claim_goals": np.zeros((1, 2), np.int32), "claim_scores": np.zeros(1),
+        "claim_visible": np.zeros((0, *world.shape), bool), "lost": np.zeros(1, bool),
+    }  # fmt: skip
+    no_scans = (
+        np.zeros((0, 2), np.int32),
+        np.zeros((0, 2500), np.uint16),
+        np.zeros((0, 2500), bool),
+    )
+    return [
+        StepReply(seq, True, *no_scans, **one),
+        StepReply(
+            seq,
+            False,
+            np.array([far], np.int32),
+            scan.n_cells[None].astype(np.uint16),
+            scan.hit[None],
+            **one,
+        ),  # fmt: skip
+        ErrorReply("robot r0: refused by a rogue"),
+    ]
+
+
+@pytest.mark.parametrize("run", [FORGED, FORGED_PLAIN])
+def test_forged_world_replies_are_dropped_and_a_held_query_delays_nothing(hub, worlds, run):
+    """Rogues on the hub answer every step query of the run first with forged replies (the
+    team finished, a teleport, a refusal) and hold others unanswered. With a run token the
+    planner takes only replies carrying its world's MAC; without, the moves it checks
+    refuse a finish it did not ask for and a jump it could not make. Either way the robot
+    moves as asked, at the world's pace (a held query is not waited for)."""
+    session = hub[0]
+    info, truth = _fetch(session, run)
+    start = tuple(map(int, info.starts[0]))
+    far = tuple(map(int, np.argwhere(~truth.occupancy & truth.valid_space)[-1]))
+    walk = random_walk(truth.occupancy, start, 4, 3, seed=4)
+    rogue = open_session(zenoh_config(connect=[hub[1]], listen=[]))
+    held: list = []
+
+    def forge(query) -> None:
+        seq = StepRequest.decode(query.payload.to_bytes()).seq
+        for forged in _forged_replies(seq, truth, far):
+            query.reply(query.key_expr, forged.encode())
+
+    def hold(query) -> None:
+        held.append(query)  # never answered while the test runs
+
+    queryables = [
+        rogue.declare_queryable(robot_key(run, "r0", "step"), forge),
+        rogue.declare_queryable(robot_key(run, "r0", "step"), hold),
+    ]
+    source = ZenohWorld(session, run, 0, run_token=TOKENS.get(run))
+    try:
+        time.sleep(0.5)  # the rogues' queryables are known to the hub
+        source.fetch(timeout_s=10.0)
+        (scan,) = source.initial()
+        assert scan.pose == start
+        for t, cells in enumerate(walk):
+            began = time.monotonic()
+            step = source.step(t, [Decision(0, cells)])
+            took_s = time.monotonic() - began
+            assert not step.finished and step.scans[0].pose == tuple(map(int, cells[-1])), t
+            assert took_s < ServicesConfig().step_timeout_s, took_s  # not held to a timeout
+        assert held  # the holder did get the queries
+    finally:
+        for queryable in queryables:
+            queryable.undeclare()
+        held.clear()
+        rogue.close()
+    assert worlds.processes[run].poll() is None
 
 
 def test_sigint_stops_the_world_cleanly(hub, worlds):

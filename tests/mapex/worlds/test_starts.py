@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+import mapex.worlds.starts as starts_module
 from mapex.config import WorldConfig
 from mapex.worlds import World, WorldError, generate_floor_plan, load_kth_map, start_poses
 from mapex.worlds.starts import (
@@ -16,6 +17,7 @@ from mapex.worlds.starts import (
     parse_start,
     start_argument,
     start_cell,
+    start_cells,
     start_label,
     start_spec_of,
 )
@@ -210,3 +212,49 @@ def test_the_largest_part_of_the_building_wins_over_larger_free_space_outside() 
 def test_no_free_valid_cell_means_no_main_free_space() -> None:
     world = World("solid", np.ones((5, 5), dtype=bool), np.ones((5, 5), dtype=bool))
     assert not main_free_space(world).any()
+
+
+def test_many_starts_are_judged_at_once_as_each_is_alone() -> None:
+    """`start_cells` (issue #64, item 7): every cell of a building with a closet, a strip
+    outside the valid space and cells off the map, in one call, is judged as `start_cell`'s
+    rules judge it alone: the eligible ones are kept, and the first refused one is named."""
+    world = building_with_closet()
+    valid = world.valid_space.copy()
+    valid[40:, 60:] = False
+    world = World("closet", world.occupancy, valid)
+    eligible = eligible_start_cells(world, CLEARANCE)
+    good = [tuple(int(v) for v in cell) for cell in np.argwhere(eligible)]
+    assert start_cells(world, [3, *good, 0], CLEARANCE) == [
+        start_poses(world, CLEARANCE)[3],
+        *good,
+        start_poses(world, CLEARANCE)[0],
+    ]
+    every = [(r, c) for r in range(-1, 61) for c in range(-1, 81)]
+    refused = [cell for cell in every if not (0 <= cell[0] < 60 and 0 <= cell[1] < 80)]
+    refused += [tuple(int(v) for v in cell) for cell in np.argwhere(~eligible)]
+    for cell in refused:
+        with pytest.raises(WorldError) as alone:
+            start_cell(world, cell, CLEARANCE)
+        with pytest.raises(WorldError) as together:
+            start_cells(world, [*good[:50], 1, cell, *refused], CLEARANCE)
+        assert str(together.value) == str(alone.value)
+    with pytest.raises(WorldError, match="start 7 is not a corner 0-3"):
+        start_cells(world, [*good, 7, (0, 0)], CLEARANCE)
+    with pytest.raises(WorldError, match=r"start cell \(1000000000000000000000, 5\) is outside"):
+        start_cells(world, [(10**21, 5)], CLEARANCE)
+
+
+def test_the_maps_starts_are_judged_on_are_computed_once_for_any_number(monkeypatch) -> None:
+    """A thousand starts cost the map computations of one (it was one main free space and
+    one eligible map per start: 61 ms each, 200 k starts > 300 s; issue #64, item 7)."""
+    world = building_with_closet()
+    cells = [tuple(int(v) for v in cell) for cell in np.argwhere(eligible_start_cells(world, 3))]
+    calls = []
+    real = starts_module.main_free_space
+    monkeypatch.setattr(starts_module, "main_free_space", lambda w: calls.append(1) or real(w))
+    counts = []
+    for starts in ([cells[0]], cells[:1000], [0, *cells[:1000], 2, 3]):
+        calls.clear()
+        start_cells(world, starts, CLEARANCE)
+        counts.append(len(calls))
+    assert counts == [1, 1, 1]

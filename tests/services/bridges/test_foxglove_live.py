@@ -1,8 +1,10 @@
 """The live Foxglove server (services.bridges.foxglove_live) seen by a Foxglove WebSocket
 client (tests/helpers/foxglove_client.py): its subprotocol, latched topics for a late
 subscriber, refused subscriptions answered with the channel made again (the SDK's
-advertise/subscribe race), a real `services.up --foxglove` run whose every channel delivers
-in five sessions in a row, and a busy port refused in one line.
+advertise/subscribe race), the relay's cap on clients and its handshake deadline, a real
+`services.up --foxglove` run whose every channel delivers in five sessions in a row (the
+server a child process of up), and a busy port refused in one line, by up and by the
+`services.foxglove` command.
 
 Ports are free loopback ones, never the app's default 8765 nor the default hub 7447.
 """
@@ -30,6 +32,7 @@ from mapex.interop.ros_messages import MapFrame  # noqa: E402
 from mapex.interop.topics import TF_STATIC_TOPIC, RunTopics  # noqa: E402
 from services.bridges import foxglove_live  # noqa: E402
 from services.bridges.foxglove_live import SDK_CLIENT_LOGGER, FoxgloveServer  # noqa: E402
+from services.config import FoxgloveConfig  # noqa: E402
 
 DEADLINE_S = 10.0  # one exchange with an in-process server on a shared 2-core machine
 START_DEADLINE_S = 120.0  # services.up starts its world and planner before the first step
@@ -144,6 +147,31 @@ def test_channels_made_while_a_client_subscribes_to_each_all_deliver(server):
         client.close()
 
 
+def test_clients_beyond_the_cap_get_503_and_a_slow_handshake_is_closed():
+    """The relay in front of the SDK's server: `max_clients` at once (one more is answered
+    503), a handshake that has not arrived in `handshake_timeout_s` closed; each freed
+    slot serves again."""
+    config = FoxgloveConfig(port=0, max_clients=2, handshake_timeout_s=0.5)
+    capped = FoxgloveServer(port=0, config=config)
+    try:
+        first, second = connected(capped), connected(capped)
+        with pytest.raises(websocket.WebSocketBadStatusException) as refused:
+            websocket.create_connection(url(capped), subprotocols=[SUBPROTOCOL], timeout=5)
+        assert refused.value.status_code == 503
+        first.close()
+        until(lambda: capped.relay.slots.in_use == 1, "the closed client's slot to be free")
+        with socket.create_connection(("127.0.0.1", capped.port), timeout=DEADLINE_S) as slow:
+            slow.sendall(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # and no more
+            assert slow.recv(1024) == b""  # closed unanswered
+        assert capped.relay.timed_out == 1
+        until(lambda: capped.relay.slots.in_use == 1, "the slow client's slot to be free")
+        with connected(capped) as third:
+            assert third.server_info["name"] == "mapex"
+        second.close()
+    finally:
+        capped.close()
+
+
 def test_every_channel_of_a_real_run_delivers_in_five_sessions_in_a_row(tmp_path):
     """services.up --foxglove: five client sessions one after another (the first from
     before the run's first topic, so its channels are made while it is connected) each
@@ -196,6 +224,24 @@ def test_a_busy_foxglove_port_is_one_line_and_exit_2_before_any_child(tmp_path):
         "Address already in use"
     ]
     assert "started" not in done.stdout + done.stderr  # no child process
+
+
+def test_the_command_refuses_a_taken_port_and_a_bad_one_in_one_line(hub):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        done = subprocess.run(
+            [sys.executable, "-m", "services.foxglove", "--port", str(port), "--connect", hub[1]],
+            cwd=REPO_ROOT, capture_output=True, text=True, timeout=START_DEADLINE_S,
+        )  # fmt: skip
+    assert done.returncode == EXIT_USAGE, done.stderr
+    last = done.stderr.strip().splitlines()[-1]
+    assert f"--foxglove: cannot serve on 127.0.0.1 port {port}: Address already in use" in last
+    assert "Traceback" not in done.stderr
+    with pytest.raises(SystemExit) as bad:
+        foxglove_live.run_cli(["--port", "70000"])
+    assert bad.value.code == EXIT_USAGE
 
 
 def _connect(port: int) -> FoxgloveClient | None:

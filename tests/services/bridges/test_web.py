@@ -36,6 +36,7 @@ from up_processes import UpProcess
 from mapex.grid import FREE, OCCUPIED, UNKNOWN
 from mapex.worlds import load_world
 from services.bridges.follow import Update
+from services.bridges.gate import BUSY_RESPONSE
 from services.bridges.web import WebView, check_host, host_header_allowed, is_loopback_host, run_cli
 from services.bridges.web_state import (
     EventClient,
@@ -43,6 +44,7 @@ from services.bridges.web_state import (
     ViewState,
     encode_update,
     final_event,
+    frame_key,
     sse_frame,
 )
 from services.config import WebConfig
@@ -270,6 +272,30 @@ def test_an_event_client_sends_keepalives_and_closes_when_too_far_behind():
     closing.close(drain=True)  # the view closes: what is queued still goes out
     assert not closing.push(b"late") and closing.next_frame(0.01) == b"last words"
     assert closing.next_frame(0.01) is None
+
+
+def test_an_event_client_keeps_the_newest_map_of_each_robot_and_kind_and_every_other_frame():
+    """The drop-latest queue: a newer map of a robot and kind replaces the one still queued
+    (queued last, the others keep their order); a pose or status is never dropped; past
+    its bytes (or frames) the client is closed, bounded whether or not it is read."""
+    client = EventClient(max_queued_events=10, max_queued_bytes=100)
+    observed = frame_key(_update("observed_map", _observed(1)))
+    assert observed == ("demo", "r0", "observed_map")
+    assert frame_key(_update("pose", PoseMessage(1, (1, 1)))) is None
+    assert frame_key(_update("status", StatusMessage(1, "running", ""))) is None
+    mean = frame_key(_update("prediction/mean", _observed(1)))
+    other_robot = frame_key(_update("observed_map", _observed(1), robot="r1"))
+    for frame, key in [(b"map1", observed), (b"pose1", None), (b"mean1", mean),
+                       (b"map1r1", other_robot), (b"map2", observed), (b"pose2", None),
+                       (b"map3", observed)]:  # fmt: skip
+        assert client.push(frame, key)
+    queued = [client.next_frame(0.01) for _ in range(len(client))]
+    assert queued == [b"pose1", b"mean1", b"map1r1", b"pose2", b"map3"]
+    assert client.replaced == 2 and client.queued_bytes == 0
+    assert client.push(b"x" * 60, observed) and client.push(b"y" * 39)
+    assert client.push(b"z" * 61, observed)  # replaces the 60 bytes: 100 in all
+    assert not client.push(b"!") and client.closed  # 101 bytes: let go
+    assert client.next_frame(0.01) is None and client.queued_bytes == 0
 
 
 @pytest.mark.parametrize(
@@ -516,6 +542,71 @@ def test_a_closing_view_still_sends_what_it_queued_then_ends_the_streams(hub):
             stream.next_event()
     finally:
         stream.close()
+
+
+def _partial_request(port: int, head: bytes = b"GET /state HTTP/1.1\r\nHost: 127.0.0.1\r\n"):
+    """A connection that sent the start of a request and holds (no blank line after it)."""
+    connection = socket.create_connection(("127.0.0.1", port), timeout=READ_TIMEOUT_S)
+    connection.sendall(head)
+    return connection
+
+
+def _answer(connection: socket.socket) -> bytes:
+    """Everything the view sends until it closes the connection (a reset ends it too)."""
+    received = b""
+    try:
+        while chunk := connection.recv(65536):
+            received += chunk
+    except ConnectionResetError:
+        pass
+    return received
+
+
+def test_the_view_serves_at_most_max_connections_and_answers_one_more_503(hub):
+    """Held connections take the view's threads up to `max_connections`; one more is
+    answered 503 at once; a freed slot serves again."""
+    with _view(hub[0], max_connections=3, request_timeout_s=60.0) as view:
+        held = [_partial_request(view.port) for _ in range(3)]
+        until(lambda: view.connections.in_use == 3, "the held connections to be served")
+        with _partial_request(view.port) as fourth:
+            assert _answer(fourth) == BUSY_RESPONSE
+        assert view.connections.refused == 1 and view.connections.most == 3
+        for connection in held:
+            connection.close()
+        until(lambda: view.connections.in_use == 0, "the slots to be given back")
+        assert _get(view.url + "state")[0] == 200
+
+
+def test_a_partial_request_is_closed_after_the_request_timeout(hub):
+    """A request whose head does not arrive in `request_timeout_s` (even one trickling in,
+    a header line at a time) is closed unanswered and its slot freed."""
+    with _view(hub[0], max_connections=1, request_timeout_s=0.5) as view:
+        began = time.monotonic()
+        with _partial_request(view.port) as slow:
+            for _ in range(3):
+                time.sleep(0.1)
+                slow.sendall(b"X-Slow: 1\r\n")
+            assert _answer(slow) == b""
+        assert time.monotonic() - began < READ_TIMEOUT_S / 2
+        until(lambda: view.connections.in_use == 0, "the slot to be given back")
+        assert _get(view.url + "state")[0] == 200  # the one slot serves again
+
+
+def test_a_stream_that_does_not_read_is_let_go_after_the_send_timeout(hub):
+    """A browser that takes nothing: the write blocks once the socket buffers are full,
+    and `send_timeout_s` later the stream ends and its thread and slot are freed."""
+    big = (1000, 1000)  # 1.3 MB per map event
+    stalled = socket.socket()
+    stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    stalled.settimeout(READ_TIMEOUT_S)
+    with stalled, _view(hub[0], send_timeout_s=0.5, client_max_queued_bytes=2**30) as view:
+        stalled.connect(("127.0.0.1", view.port))
+        stalled.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        until(lambda: view.clients == 1, "the stream to be counted")
+        for robot in range(20):  # each robot's first map goes out at once: 26 MB
+            view.on_update(_update("observed_map", _observed(1, shape=big), robot=f"r{robot}"))
+        until(lambda: view.clients == 0, "the stalled stream to be let go", EVENT_DEADLINE_S)
+        until(lambda: view.connections.in_use == 0, "its slot to be given back")
 
 
 def test_a_host_beyond_loopback_and_a_taken_port_are_refused(hub):
