@@ -14,6 +14,7 @@ mostly never left its process. tests/deploy/test_acl.py shows what each role mus
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -22,6 +23,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
 import pytest
 import zenoh
 from acl_router import (
@@ -33,6 +35,9 @@ from acl_router import (
 )
 from service_processes import REPO_ROOT, kill_router, until
 
+from mapex.team.team import Decision
+from mapex.worlds import load_world
+from services.config import ServicesConfig
 from services.keys import (
     alive_planner_key,
     alive_planner_pattern,
@@ -46,8 +51,10 @@ from services.keys import (
     run_key,
 )
 from services.latest import LatestPublisher
-from services.messages import StatusMessage, decode_message
+from services.messages import StatusMessage, StepReply, StepRequest, decode_message
 from services.publishing import PUBLISHED_TOPICS
+from services.world import WorldServer, serve
+from services.world_client import WorldUnavailableError, ZenohWorld
 
 MESSAGES = 10  # numbered puts per key; every one must arrive
 SETTLE_DEADLINE_S = 10.0  # until every follower has heard a first put on every key
@@ -353,6 +360,69 @@ def test_every_query_a_run_makes_is_answered(acl):
 
     for session, key in asks:
         until(lambda s=session, k=key: answered(s, k), f"an answer on {key}", SETTLE_DEADLINE_S)
+
+
+def test_a_world_role_client_cannot_end_teleport_or_hold_another_run_s_robot(acl):
+    """Another user's run (world and planner as `runner`, with their run token) while a
+    client holding only the `world` role answers that run's step queries first with the team
+    finished and a teleport, and holds others: the planner takes only its world's signed
+    replies, so its robot walks as asked, at the world's pace."""
+    run, token = f"{RUN}w", "another-user-s-run-token-0b9c"
+    world = load_world("generated:0")
+    server = WorldServer(world, [0], run_token=token, run=run)
+    stop = threading.Event()
+    serving = threading.Thread(target=serve, args=(acl.session("runner"), server, run, stop))
+    serving.start()
+    rogue, held = acl.session("world"), []
+    start = server.starts[0]
+    far = StepReply(
+        0, False, np.array([[world.shape[0] - 2, world.shape[1] - 2]], np.int32),
+        np.ones((1, 2500), np.uint16), np.zeros((1, 2500), bool), np.zeros(1, bool),
+        np.zeros(1, np.uint8), np.zeros((1, 2), np.int32), np.zeros(1),
+        np.zeros((0, *world.shape), bool), np.zeros(1, bool),
+    )  # fmt: skip
+
+    def forge(query) -> None:
+        seq = StepRequest.decode(query.payload.to_bytes()).seq
+        finished = dataclasses.replace(far, seq=seq, finished=True, poses=far.poses[:0],
+                                       n_cells=far.n_cells[:0], hit=far.hit[:0])  # fmt: skip
+        for reply in (finished, dataclasses.replace(far, seq=seq)):
+            query.reply(query.key_expr, reply.encode())
+
+    queryables = [
+        rogue.declare_queryable(robot_key(run, "r0", "step"), forge),
+        rogue.declare_queryable(robot_key(run, "r0", "step"), held.append),
+    ]
+    try:
+        source = ZenohWorld(acl.session("runner"), run, 0, run_token=token)
+        until(lambda: _fetched(source), "the world's info through the router", SETTLE_DEADLINE_S)
+        assert source.initial()[0].pose == start
+        pose = np.array(start)
+        for t in range(5):
+            free = [c for c in pose + NEIGHBOURS if not world.occupancy[tuple(c)]]
+            pose = np.array(free[t % len(free)])
+            began = time.monotonic()
+            step = source.step(t, [Decision(0, pose.reshape(1, 2).astype(np.int32))])
+            assert not step.finished and step.scans[0].pose == tuple(map(int, pose)), t
+            assert time.monotonic() - began < ServicesConfig().step_timeout_s
+        assert held  # the rogue's queryable got the queries
+    finally:
+        for queryable in queryables:
+            queryable.undeclare()
+        held.clear()
+        stop.set()
+        serving.join()
+
+
+NEIGHBOURS = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc])
+
+
+def _fetched(source: ZenohWorld) -> bool:
+    try:
+        source.fetch(timeout_s=1.0)
+    except WorldUnavailableError:
+        return False
+    return True
 
 
 def test_a_run_prefix_in_the_key_expressions_confines_a_planner_to_its_runs(tmp_path):
