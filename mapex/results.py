@@ -65,9 +65,25 @@ def check_output_folder(folder: Path) -> Path:
     return folder
 
 
+RUN_FILES = frozenset(
+    {METRICS_FILE, CURVES_FILE, TRAJECTORY_FILE, TEAM_TRAJECTORIES_FILE, PICTURE_FILE,
+     SNAPSHOTS_FILE}
+)  # fmt: skip  # what a run folder holds: all a new run may replace
+
+
 def check_run_folder(out_dir: Path) -> Path:
-    """A run folder can be written to `out_dir` (replacing an older run folder there)."""
+    """A run folder can be written to `out_dir`: it is new, empty, or an older run's folder
+    (which the run replaces). A folder holding anything else is refused (one line): a run
+    never deletes what it did not write."""
     out_dir = _not_a_file(Path(out_dir))
+    if out_dir.is_dir():
+        foreign = sorted(entry.name for entry in out_dir.iterdir() if entry.name not in RUN_FILES)
+        if foreign:
+            shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+            raise OutputError(
+                f"--out {out_dir} holds what is not a run's folder ({shown}): a run replaces "
+                f"only an older run's folder; give a new or empty folder"
+            )
     check_output_folder(out_dir.parent)
     return out_dir
 

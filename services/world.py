@@ -210,8 +210,10 @@ class WorldServer:
                 budget = self.config.steps
                 stops = (self.config.until_iou, self.config.metrics.until_coverage)
                 ended = self.seq > budget or self.finished or stops != (None, None)
-                level = logging.INFO if ended else logging.WARNING
-                log.log(level, "robot %s is lost: its planner is gone", robot_id(robot))
+                if ended:  # a planner that finished: not a lost robot
+                    log.info("robot %s's planner finished (at step %d)", robot_id(robot), self.seq)
+                else:
+                    log.warning("robot %s is lost: its planner is gone", robot_id(robot))
                 self.lost.add(robot)
                 self._clock.notify_all()
 

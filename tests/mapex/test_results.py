@@ -54,10 +54,25 @@ def test_a_full_disk_leaves_no_staging_and_no_run(tmp_path, short_run, monkeypat
 def test_a_run_folder_replaces_an_older_one_whole(tmp_path, short_run):
     out = tmp_path / "run"
     out.mkdir()
-    (out / "stale.txt").write_text("old")
+    (out / results.SNAPSHOTS_FILE).write_text("an older run's")
+    (out / results.METRICS_FILE).write_text("{}")
     write_results(*short_run, out)
-    assert not (out / "stale.txt").exists() and (out / results.METRICS_FILE).is_file()
+    assert not (out / results.SNAPSHOTS_FILE).read_bytes().startswith(b"an older")
+    assert (out / results.CURVES_FILE).is_file()
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
+
+
+def test_a_folder_holding_anything_else_is_refused_and_left_as_it_was(tmp_path, short_run):
+    """`mapex run --out d` once deleted what d held (another run's results folder, a note)."""
+    out = tmp_path / "d"
+    (out / "x").mkdir(parents=True)
+    (out / "n").write_text("mine")
+    (out / results.METRICS_FILE).write_text("{}")
+    with pytest.raises(OutputError, match=r"holds what is not a run's folder \(n, x\)") as info:
+        write_results(*short_run, out)
+    assert "\n" not in str(info.value)
+    assert sorted(p.name for p in out.iterdir()) == [results.METRICS_FILE, "n", "x"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]  # no staging left
 
 
 def test_every_run_records_its_path_length_and_idle_steps(short_run):

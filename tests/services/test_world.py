@@ -652,6 +652,22 @@ def test_world_server_serves_fresh_steps_once_and_caches_retries(world):
     assert server.served == 2 and server.seq == 2
 
 
+def test_a_planner_that_finished_is_not_a_lost_robot(world, caplog):
+    """A planner leaving after the run's last step is logged as finished (INFO); one leaving
+    before is a lost robot (WARNING)."""
+    config = dataclasses.replace(SMALL, steps=1)
+    for seq, lost in ((2, False), (1, True)):
+        server = WorldServer(world, [0], config)
+        for k in range(seq):
+            server.answer_step(0, step_request(k))
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="services.world"):
+            server.planner_gone(0)
+        (record,) = caplog.records
+        assert ("is lost" in record.getMessage()) == lost, record.getMessage()
+        assert record.levelno == (logging.WARNING if lost else logging.INFO)
+
+
 @pytest.mark.parametrize(
     "robot, payload, match",
     [
