@@ -25,6 +25,7 @@ from collections.abc import Callable
 import zenoh
 
 from services.codec import Payload
+from services.config import MAX_PORT
 from services.messages import ErrorReply, Message
 
 Answer = Callable[[Payload | None, float], Message]
@@ -217,3 +218,14 @@ def positive_number(unit: str) -> Callable[[str], float]:
         return value
 
     return parse
+
+
+def port_number(text: str) -> int:
+    """An argparse type: a TCP port, 0 (any free one) to `MAX_PORT`."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= MAX_PORT:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port (0 to {MAX_PORT})")
+    return value

@@ -189,15 +189,14 @@ class ZenohWorld:
         )  # fmt: skip
         for reply in replies:
             sample = reply.ok if reply.ok is not None else reply.err
-            if reply.ok is None and sample.payload.to_bytes() == _ZENOH_TIMEOUT:
+            data = sample.payload.to_bytes()
+            if reply.ok is None and data == _ZENOH_TIMEOUT:
                 continue  # the query timed out: no reply
-            if not self._from_the_world(key, payload, sample):
+            if not self._from_the_world(key, payload, data, sample.attachment):
                 log.warning("%s: dropped a reply not signed by this run's world", key)
                 continue
             try:
-                message = decode_message(
-                    sample.payload.to_bytes(), kinds, self.services, self._reply_bytes()
-                )
+                message = decode_message(data, kinds, self.services, self._reply_bytes())
             except ProtocolError as error:
                 invalid = str(error)
             else:
@@ -224,13 +223,16 @@ class ZenohWorld:
         cells = int(np.prod(self.info.shape))
         return map_message_bytes(cells, robots, robots * (3 * rays + 64))
 
-    def _from_the_world(self, key: str, query: bytes, sample: zenoh.Sample) -> bool:
-        """Whether `sample` carries this run's world's MAC (always True without a token)."""
+    def _from_the_world(
+        self, key: str, query: bytes, reply: bytes, attachment: zenoh.ZBytes | None
+    ) -> bool:
+        """Whether `reply` (with its `attachment`) carries this run's world's MAC (always
+        True without a token)."""
         if self._step_key is None:
             return True
-        mac = None if sample.attachment is None else sample.attachment.to_bytes()
-        reply = sample.payload.to_bytes()
-        return mac is not None and world_reply_signed(self._step_key, key, query, reply, mac)
+        if attachment is None:
+            return False
+        return world_reply_signed(self._step_key, key, query, reply, attachment.to_bytes())
 
     def _step_check(self, request: StepRequest) -> Callable[[Message], str | None]:
         """What is wrong with a reply to step query `request` (None: nothing)."""

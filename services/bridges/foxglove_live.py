@@ -48,9 +48,9 @@ from mapex.interop.topics import ChannelMessage, Outgoing, channel_messages
 from services.bridges.follow import RunFollower
 from services.bridges.gate import TcpRelay
 from services.bridges.ros_translate import TRANSLATED_TOPICS, RunTranslator
-from services.config import DEFAULT_FOXGLOVE, MAX_PORT, FoxgloveConfig, Ros2Config
+from services.config import DEFAULT_FOXGLOVE, FoxgloveConfig, Ros2Config
 from services.keys import run_id_problem
-from services.serving import configure_logging, stop_on_signals, wait_for
+from services.serving import configure_logging, port_number, stop_on_signals, wait_for
 from services.zenoh_config import (
     ZenohConfigError,
     add_zenoh_arguments,
@@ -278,7 +278,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--run", default=None, help="run id to follow (default: every run)")
     parser.add_argument(
-        "--port", type=_port, default=DEFAULT_FOXGLOVE.port,
+        "--port", type=port_number, default=DEFAULT_FOXGLOVE.port,
         help=f"port to serve on {DEFAULT_FOXGLOVE.host}, 0 for any free one (default: "
         "%(default)s)",
     )  # fmt: skip
@@ -302,17 +302,6 @@ def run_cli(argv: list[str] | None = None) -> int:
         log.error("%s", error)
         return EXIT_USAGE
     return 0
-
-
-def _port(text: str) -> int:
-    """argparse type of a TCP port: 0 (any free one) to 65535."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if not 0 <= value <= MAX_PORT:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port (0 to {MAX_PORT})")
-    return value
 
 
 if __name__ == "__main__":

@@ -49,7 +49,13 @@ from services.bridges.web_state import (
 )
 from services.config import DEFAULT_WEB, WebConfig
 from services.keys import run_id_problem
-from services.serving import configure_logging, positive_number, stop_on_signals, wait_for
+from services.serving import (
+    configure_logging,
+    port_number,
+    positive_number,
+    stop_on_signals,
+    wait_for,
+)
 from services.zenoh_config import (
     ZenohConfigError,
     add_zenoh_arguments,
@@ -60,7 +66,6 @@ from services.zenoh_config import (
 log = logging.getLogger("services.web")
 
 
-MAX_PORT = 65535
 LOCAL_HOST_NAMES = ("localhost",)  # host names accepted as loopback without --allow-remote
 PAGE_PACKAGE, PAGE_FOLDER = "services.bridges", "web_page"
 PAGE_FILES = {  # URL path -> (file of services/bridges/web_page, content type)
@@ -471,7 +476,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--port",
-        type=_port,
+        type=port_number,
         default=DEFAULT_WEB.port,
         help="port to serve on, 0 for any free one (default: %(default)s)",
     )
@@ -507,17 +512,6 @@ def run_cli(argv: list[str] | None = None) -> int:
         log.error("%s", error)
         return EXIT_USAGE
     return 0
-
-
-def _port(text: str) -> int:
-    """argparse type of a TCP port: 0 (any free one) to 65535."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if not 0 <= value <= MAX_PORT:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port (0 to {MAX_PORT})")
-    return value
 
 
 def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:

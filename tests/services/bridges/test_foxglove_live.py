@@ -24,7 +24,12 @@ pytest.importorskip("foxglove", reason="the foxglove extra is not installed")
 
 import websocket  # noqa: E402
 from foxglove_client import SUBPROTOCOL, FoxgloveClient  # noqa: E402
-from service_processes import REPO_ROOT, free_loopback_port, until  # noqa: E402
+from service_processes import (  # noqa: E402
+    REPO_ROOT,
+    free_loopback_port,
+    taken_loopback_port,
+    until,
+)
 from up_processes import UpProcess  # noqa: E402
 
 from mapex.exit_codes import EXIT_INTERRUPTED, EXIT_USAGE  # noqa: E402
@@ -209,10 +214,7 @@ def test_every_channel_of_a_real_run_delivers_in_five_sessions_in_a_row(tmp_path
 
 
 def test_a_busy_foxglove_port_is_one_line_and_exit_2_before_any_child(tmp_path):
-    with socket.socket() as taken:
-        taken.bind(("127.0.0.1", 0))
-        taken.listen()
-        port = taken.getsockname()[1]
+    with taken_loopback_port() as port:
         done = subprocess.run(
             [sys.executable, "-m", "services.up", "--foxglove", str(port), "--steps", "1",
              "--listen", f"tcp/127.0.0.1:{free_loopback_port()}", "--out", str(tmp_path)],
@@ -227,10 +229,7 @@ def test_a_busy_foxglove_port_is_one_line_and_exit_2_before_any_child(tmp_path):
 
 
 def test_the_command_refuses_a_taken_port_and_a_bad_one_in_one_line(hub):
-    with socket.socket() as taken:
-        taken.bind(("127.0.0.1", 0))
-        taken.listen()
-        port = taken.getsockname()[1]
+    with taken_loopback_port() as port:
         done = subprocess.run(
             [sys.executable, "-m", "services.foxglove", "--port", str(port), "--connect", hub[1]],
             cwd=REPO_ROOT, capture_output=True, text=True, timeout=START_DEADLINE_S,

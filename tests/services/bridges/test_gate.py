@@ -12,7 +12,7 @@ import threading
 import time
 
 import pytest
-from service_processes import until
+from service_processes import read_until_closed, until
 
 from services.bridges.gate import BUSY_RESPONSE, ConnectionSlots, TcpRelay
 
@@ -87,17 +87,6 @@ def _client(relay: TcpRelay, head: bytes = b"GET / HTTP/1.1\r\n\r\n", **socket_o
     return connection
 
 
-def _read_to_end(connection: socket.socket) -> bytes:
-    """Everything the peer sends until it closes (a reset counts as the end)."""
-    received = b""
-    try:
-        while chunk := connection.recv(65536):
-            received += chunk
-    except ConnectionResetError:
-        pass
-    return received
-
-
 def test_connection_slots_cap_what_is_held_at_once_and_count():
     slots = ConnectionSlots(2)
     assert slots.take() and slots.take() and not slots.take()
@@ -122,7 +111,7 @@ def test_the_relay_serves_max_clients_and_answers_one_more_503(backend):
         assert second.recv(4) == b"ping"  # relayed both ways
         until(lambda: relay.slots.in_use == 2, "both clients to be counted")
         with _client(relay) as third:
-            assert _read_to_end(third) == BUSY_RESPONSE  # and closed at once
+            assert read_until_closed(third) == BUSY_RESPONSE  # and closed at once
         assert relay.slots.refused == 1
         first.close()
         until(lambda: relay.slots.in_use == 1, "the closed client's slot to be free")
@@ -141,7 +130,7 @@ def test_a_handshake_that_does_not_arrive_in_time_is_closed_and_frees_its_slot(b
             for _ in range(3):  # more of the head, slowly: the deadline is for all of it
                 time.sleep(0.1)
                 slow.sendall(b"X: y\r\n")
-            assert _read_to_end(slow) == b""  # closed unanswered
+            assert read_until_closed(slow) == b""  # closed unanswered
         assert time.monotonic() - began < DEADLINE_S / 2
         assert relay.timed_out == 1
         until(lambda: relay.slots.in_use == 0, "the slot to be free")
@@ -175,7 +164,7 @@ def test_a_taken_port_is_an_os_error_and_close_ends_every_connection(backend):
     client = _client(relay)
     assert client.recv(4) == b"OK\r\n"
     relay.close()
-    assert _read_to_end(client) == b""
+    assert read_until_closed(client) == b""
     client.close()
     with pytest.raises(ConnectionRefusedError):
         socket.create_connection(("127.0.0.1", relay.port), timeout=DEADLINE_S)

@@ -33,7 +33,12 @@ pytest.importorskip("foxglove", reason="the foxglove extra is not installed")
 
 import websocket  # noqa: E402
 from foxglove_client import SUBPROTOCOL, FoxgloveClient  # noqa: E402
-from service_processes import REPO_ROOT, free_loopback_port, until  # noqa: E402
+from service_processes import (  # noqa: E402
+    REPO_ROOT,
+    free_loopback_port,
+    taken_loopback_port,
+    until,
+)
 from shard_runs import run_records  # noqa: E402
 from up_processes import UpProcess, kill_quietly, pid_alive  # noqa: E402
 
@@ -147,10 +152,7 @@ def _running(up: UpProcess) -> bool:
 
 
 def test_a_busy_web_port_is_one_line_and_exit_2_before_any_child(tmp_path):
-    with socket.socket() as taken:
-        taken.bind(("127.0.0.1", 0))
-        taken.listen()
-        port = taken.getsockname()[1]
+    with taken_loopback_port() as port:
         done = subprocess.run(
             [sys.executable, "-m", "services.up", "--web", str(port), "--steps", "1",
              "--listen", f"tcp/127.0.0.1:{free_loopback_port()}", "--out", str(tmp_path)],

@@ -29,6 +29,8 @@ from service_processes import (
     STOP_DEADLINE_S,
     ServiceProcesses,
     free_loopback_port,
+    read_until_closed,
+    taken_loopback_port,
     until,
 )
 from up_processes import UpProcess
@@ -551,17 +553,6 @@ def _partial_request(port: int, head: bytes = b"GET /state HTTP/1.1\r\nHost: 127
     return connection
 
 
-def _answer(connection: socket.socket) -> bytes:
-    """Everything the view sends until it closes the connection (a reset ends it too)."""
-    received = b""
-    try:
-        while chunk := connection.recv(65536):
-            received += chunk
-    except ConnectionResetError:
-        pass
-    return received
-
-
 def test_the_view_serves_at_most_max_connections_and_answers_one_more_503(hub):
     """Held connections take the view's threads up to `max_connections`; one more is
     answered 503 at once; a freed slot serves again."""
@@ -569,7 +560,7 @@ def test_the_view_serves_at_most_max_connections_and_answers_one_more_503(hub):
         held = [_partial_request(view.port) for _ in range(3)]
         until(lambda: view.connections.in_use == 3, "the held connections to be served")
         with _partial_request(view.port) as fourth:
-            assert _answer(fourth) == BUSY_RESPONSE
+            assert read_until_closed(fourth) == BUSY_RESPONSE
         assert view.connections.refused == 1 and view.connections.most == 3
         for connection in held:
             connection.close()
@@ -586,7 +577,7 @@ def test_a_partial_request_is_closed_after_the_request_timeout(hub):
             for _ in range(3):
                 time.sleep(0.1)
                 slow.sendall(b"X-Slow: 1\r\n")
-            assert _answer(slow) == b""
+            assert read_until_closed(slow) == b""
         assert time.monotonic() - began < READ_TIMEOUT_S / 2
         until(lambda: view.connections.in_use == 0, "the slot to be given back")
         assert _get(view.url + "state")[0] == 200  # the one slot serves again
@@ -612,12 +603,11 @@ def test_a_stream_that_does_not_read_is_let_go_after_the_send_timeout(hub):
 def test_a_host_beyond_loopback_and_a_taken_port_are_refused(hub):
     with pytest.raises(ValueError, match="not a loopback address"):
         WebView(hub[0], None, WebConfig(host="0.0.0.0", port=0))
-    with socket.socket() as taken:
-        taken.bind(("127.0.0.1", 0))
-        taken.listen()
-        port = taken.getsockname()[1]
-        with pytest.raises(OSError, match=f"cannot serve on 127.0.0.1 port {port}: "):
-            WebView(hub[0], None, WebConfig(port=port))
+    with (
+        taken_loopback_port() as port,
+        pytest.raises(OSError, match=f"cannot serve on 127.0.0.1 port {port}: "),
+    ):
+        WebView(hub[0], None, WebConfig(port=port))
 
 
 # ---------------------------------------------------------------------- command line
@@ -649,10 +639,8 @@ def _web_command(*flags: str) -> list[str]:
 
 
 def test_a_taken_port_is_one_line_and_exit_2_as_a_process(hub):
-    with socket.socket() as taken:
-        taken.bind(("127.0.0.1", 0))
-        taken.listen()
-        port = str(taken.getsockname()[1])
+    with taken_loopback_port() as taken_port:
+        port = str(taken_port)
         result = subprocess.run(
             _web_command("--port", port, "--connect", hub[1]),
             cwd=REPO_ROOT, capture_output=True, text=True, timeout=START_DEADLINE_S,
